@@ -1,0 +1,436 @@
+"""Build the first BLSM from the Anny body model (``blsm build-anny``).
+
+Anny (PyPI ``anny``, Apache-2.0 code, CC0 MakeHuman assets) stands in for scanned people. The
+steps follow paper 000 Sec. 4 (thesis Sec. 5.4) where Anny makes them simpler:
+
+1. Template: the mean rest shape of a sampled population, cut at the sagittal plane, the left half
+   decimated with its cut border fixed (quadric edge collapse, ``pyfqmr``), mirrored and welded, so
+   the mesh is closed, manifold and exactly left/right symmetric with a known vertex mirror map.
+   Every population body is carried onto it by the barycentric coordinates of each template vertex
+   on the original Anny surface (the registrations are in correspondence by construction).
+2. Skeleton: 20 BLSM bones chosen from Anny's 104-bone rig (fingers, toes and eyes folded into hand,
+   foot and head); LBS weights summed over the folded Anny bones and transferred the same way.
+3. Bone-length PCA (Sec. 4.2): bone lengths over the population, divided by their mean, so
+   ``b_mean = 1``; the basis is scaled to one standard deviation per coefficient.
+4. First bone-corrective blendshapes (Eq. 7) and shape PCA (Eq. 8): every body is un-skinned with
+   its bone scales at zero pose (inverse of the blended Eq. 12 transforms); the correctives are the
+   ridge regression of the un-skinned offsets on the bone coefficients and the shape basis is the
+   PCA of what remains. The scan-fitting pipeline (Eqs. 13-15) will replace these estimates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from blsm import io, skeleton
+from blsm.joint_limits import DEFAULT_DOF_TABLE, load_dof_table
+
+# Anny bones folded into each BLSM bone; the first one gives the BLSM bone's head.
+ANNY_BONES: dict[str, tuple[str, ...]] = {
+    "pelvis": ("root", "pelvis.L", "pelvis.R", "spine05"),
+    "spine_01": ("spine04", "spine03"),
+    "spine_02": ("spine02",),
+    "spine_03": ("spine01",),
+    "neck": ("neck01", "neck02", "neck03"),
+    "head": ("head", "eye.L", "eye.R"),
+    "clavicle_l": ("clavicle.L", "shoulder01.L"),
+    "shoulder_l": ("upperarm01.L", "upperarm02.L"),
+    "elbow_l": ("lowerarm01.L", "lowerarm02.L"),
+    "wrist_l": ("wrist.L", "finger*.L", "metacarpal*.L"),
+    "hip_l": ("upperleg01.L", "upperleg02.L"),
+    "knee_l": ("lowerleg01.L", "lowerleg02.L"),
+    "ankle_l": ("foot.L", "toe*.L"),
+}
+for _name in list(ANNY_BONES):
+    if _name.endswith("_l"):
+        ANNY_BONES[_name[:-2] + "_r"] = tuple(b.replace(".L", ".R") for b in ANNY_BONES[_name])
+
+COCO17 = (
+    "nose", "left_eye", "right_eye", "left_ear", "right_ear",
+    "left_shoulder", "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist",
+    "left_hip", "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle",
+)  # fmt: skip
+# COCO body keypoints are the BLSM joints; face keypoints are surface points.
+COCO_JOINT = {
+    "shoulder": "shoulder", "elbow": "elbow", "wrist": "wrist",
+    "hip": "hip", "knee": "knee", "ankle": "ankle",
+}  # fmt: skip
+FACE_COCO = ("nose", "left_eye", "right_eye", "left_ear", "right_ear")
+EXTRA_SURFACE = ("head_top", "hand_tip_l", "hand_tip_r", "toe_tip_l", "toe_tip_r", "heel_l", "heel_r")
+
+ANNY_TO_WORLD = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""Anny is Z up and faces -Y; BLSM is Y up and faces +Z: (x, y, z) -> (x, z, -y)."""
+
+
+def _log(msg: str) -> None:
+    print(f"[build-anny] {msg}", file=sys.stderr, flush=True)
+
+
+def _match(pattern: str, name: str) -> bool:
+    if pattern.endswith(".L") or pattern.endswith(".R"):
+        stem, side = pattern[:-2], pattern[-2:]
+        if not name.endswith(side):
+            return False
+        pattern, name = stem, name[:-2]
+    if "*" in pattern:
+        return name.startswith(pattern.split("*")[0])
+    return pattern == name
+
+
+def anny_bone_groups(labels: list[str]) -> list[list[int]]:
+    """Anny bone indices folded into each BLSM bone, in BLSM bone order; every Anny bone once."""
+    groups = []
+    for name in skeleton.BONE_NAMES:
+        groups.append([i for i, lab in enumerate(labels) if any(_match(p, lab) for p in ANNY_BONES[name])])
+    used = sorted(i for g in groups for i in g)
+    if used != list(range(len(labels))):
+        missing = set(range(len(labels))) - set(used)
+        raise RuntimeError(f"Anny bones not mapped exactly once: {[labels[i] for i in missing]}")
+    return groups
+
+
+def symmetric_half_decimation(vertices: np.ndarray, faces: np.ndarray, half_faces: int):
+    """Decimate a symmetric closed mesh into a symmetric closed mesh with a vertex mirror map.
+
+    Args:
+        vertices: (V, 3) mesh symmetric about x = 0.
+        faces: (F, 3) triangles.
+        half_faces: number of triangles to keep in the left half.
+
+    Returns:
+        (vertices (V', 3), faces (F', 3), mirror (V',)) of the decimated mesh.
+    """
+    import pyfqmr
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    half = trimesh.intersections.slice_mesh_plane(mesh, plane_normal=[1, 0, 0], plane_origin=[0, 0, 0], cap=False)
+    half.merge_vertices()
+    simp = pyfqmr.Simplify()
+    simp.setMesh(np.asarray(half.vertices), np.asarray(half.faces))
+    simp.simplify_mesh(target_count=half_faces, aggressiveness=7, preserve_border=True, verbose=0)
+    hv, hf, _ = simp.getMesh()
+    hv = hv.astype(np.float64)
+    on_plane = np.abs(hv[:, 0]) < 1e-7
+    hv[on_plane, 0] = 0.0
+    n = len(hv)
+    off = np.flatnonzero(~on_plane)
+    right_index = np.arange(n)
+    right_index[off] = n + np.arange(len(off))
+    rv = hv[off] * np.array([-1.0, 1.0, 1.0])
+    verts = np.concatenate([hv, rv])
+    faces_r = right_index[hf][:, ::-1]  # a reflection flips the winding
+    faces_all = np.concatenate([hf, faces_r]).astype(np.int64)
+    mirror = np.arange(len(verts))
+    mirror[off] = n + np.arange(len(off))
+    mirror[n + np.arange(len(off))] = off
+    out = trimesh.Trimesh(verts, faces_all, process=False)
+    if not (out.is_watertight and out.is_winding_consistent):
+        raise RuntimeError("symmetric decimation did not give a closed, consistently wound mesh")
+    return verts, faces_all, mirror
+
+
+def barycentric_embedding(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray):
+    """Closest point on a mesh for each query point, as (face index (P,), barycentric (P, 3))."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    closest, _, tri = trimesh.proximity.closest_point(mesh, points)
+    bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], closest)
+    bary = np.clip(bary, 0.0, None)
+    bary /= bary.sum(1, keepdims=True)
+    return tri, bary
+
+
+def _interp(values: np.ndarray, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """Barycentric interpolation of per-vertex values (..., V, C) at embedded points."""
+    corner = faces[tri]  # (P, 3)
+    return np.einsum("...pkc,pk->...pc", values[..., corner, :], bary)
+
+
+def _scaled_chain(b: np.ndarray, heads: np.ndarray, parents: np.ndarray):
+    """Skinning transforms at zero pose for bone scales b (N, J): Eqs. 3 and 5 in numpy."""
+    n, nj = b.shape
+    lin = np.zeros((n, nj, 3, 3))
+    off = np.zeros((n, nj, 3))
+    for j, p in enumerate(parents):
+        s = b[:, j] / (b[:, p] if p >= 0 else 1.0)
+        l_j = s[:, None, None] * np.eye(3)
+        t_j = heads[j] - np.einsum("nkl,l->nk", l_j, heads[j])
+        if p < 0:
+            lin[:, j], off[:, j] = l_j, t_j
+        else:
+            lin[:, j] = lin[:, p] @ l_j
+            off[:, j] = np.einsum("nkl,nl->nk", lin[:, p], t_j) + off[:, p]
+    return lin, off
+
+
+def build(
+    n_bodies: int = 600,
+    seed: int = 0,
+    half_faces: int = 7000,
+    num_bone_coeffs: int = 10,
+    num_shape_coeffs: int = 16,
+    ridge: float = 1e-3,
+) -> tuple[io.ModelData, dict]:
+    """Build the BLSM model data from an Anny population. See the module docstring."""
+    import anny
+    import xatlas
+    from anny.skinning.skinning import apply_linear_blendshape
+    from anny.utils.mesh_utils import get_symmetric_vertex_indices
+
+    t0 = time.time()
+    dofs = load_dof_table(DEFAULT_DOF_TABLE)
+    model = anny.Anny(topology="anny-noeyes-notongue")
+    full = anny.Anny(topology="anny")  # with eyes, for Anny's COCO face keypoints
+    _log(f"Anny {anny.__version__} loaded in {time.time() - t0:.0f} s")
+
+    gen = torch.Generator().manual_seed(seed)
+    pheno = torch.rand(n_bodies, len(model.phenotype_labels), generator=gen, dtype=torch.float64)
+    kw = {lab: pheno[:, i] for i, lab in enumerate(model.phenotype_labels)}
+    with torch.no_grad():
+        coeffs = model.get_phenotype_blendshape_coefficients(**kw)
+        verts = model.get_rest_vertices(coeffs).numpy() @ ANNY_TO_WORLD.T  # (N, Va, 3)
+        heads = apply_linear_blendshape(model.template_bone_heads, model.bone_heads_blendshapes, coeffs)
+        heads = heads.numpy() @ ANNY_TO_WORLD.T  # (N, 104, 3)
+        coeffs_full = full.get_phenotype_blendshape_coefficients(**kw)
+        full_verts = full.get_rest_vertices(coeffs_full)
+        regressor = anny.KeypointsRegressor.coco(full, labels=[n for n in COCO17 if n in FACE_COCO])
+        coco = regressor(dict(vertices=full_verts)).numpy() @ ANNY_TO_WORLD.T  # (N, 5, 3)
+    faces_a = model.faces.numpy()
+    labels = list(model.bone_labels)
+
+    # Symmetrise every body (Anny's vertex mirror map, bone names mirrored).
+    sym = get_symmetric_vertex_indices(model.template_vertices, axis=0, threshold=1e-4).numpy()
+    flip = np.array([-1.0, 1.0, 1.0])
+    verts = 0.5 * (verts + verts[:, sym] * flip)
+    bone_sym = [labels.index(lab.replace(".L", ".X").replace(".R", ".L").replace(".X", ".R")) for lab in labels]
+    heads = 0.5 * (heads + heads[:, bone_sym] * flip)
+
+    groups = anny_bone_groups(labels)
+    joints = heads[:, [g[0] for g in groups]]  # (N, J, 3)
+    mean_verts = verts.mean(0)
+
+    # 1. Template topology.
+    dec_v, dec_f, mirror = symmetric_half_decimation(mean_verts, faces_a, half_faces)
+    tri, bary = barycentric_embedding(mean_verts, faces_a, dec_v)
+    bodies = _interp(verts, faces_a, tri, bary)  # (N, V, 3)
+    bodies = 0.5 * (bodies + bodies[:, mirror] * flip)
+    template = bodies.mean(0)
+    _log(f"template: {len(dec_v)} vertices, {len(dec_f)} faces (from {len(mean_verts)})")
+
+    # 2. Weights: Anny's sparse weights summed per BLSM bone, then transferred.
+    wa = np.zeros((len(mean_verts), len(labels)))
+    np.add.at(wa, (np.arange(len(mean_verts))[:, None], model.vertex_bone_indices.numpy()), model.vertex_bone_weights.numpy())
+    wb = np.stack([wa[:, g].sum(1) for g in groups], axis=1)  # (Va, J)
+    weights = _interp(wb, faces_a, tri, bary)
+    bone_mirror = [skeleton.BONE_NAMES.index(skeleton.mirror_name(n)) for n in skeleton.BONE_NAMES]
+    weights = 0.5 * (weights + weights[mirror][:, bone_mirror])
+    weights = np.clip(weights, 0.0, None)
+    weights[weights < 1e-4] = 0.0
+    weights /= weights.sum(1, keepdims=True)
+    vertex_bones = weights.argmax(1)
+
+    # Leaf tips on the template (head top, middle fingertip, toe tip, heel).
+    bi = skeleton.BONE_NAMES.index
+    jm = joints.mean(0)
+
+    def region(bone: str) -> np.ndarray:
+        return np.flatnonzero(vertex_bones == bi(bone))
+
+    head_region = region("head")
+    tips = {"head_top": head_region[np.argmax(template[head_region, 1])]}
+    hand = region("wrist_l")
+    tips["hand_tip_l"] = hand[np.argmax(np.linalg.norm(template[hand] - jm[bi("wrist_l")], axis=1))]
+    foot = region("ankle_l")
+    tips["toe_tip_l"] = foot[np.argmax(template[foot, 2])]
+    low = foot[template[foot, 1] < template[foot, 1].min() + 0.02]
+    tips["heel_l"] = low[np.argmin(template[low, 2])]
+    for k in ("hand_tip", "toe_tip", "heel"):
+        tips[f"{k}_r"] = mirror[tips[f"{k}_l"]]
+
+    leaf_tip = {"head": "head_top", "wrist_l": "hand_tip_l", "wrist_r": "hand_tip_r", "ankle_l": "toe_tip_l", "ankle_r": "toe_tip_r"}
+    children = {j: [c for c, p in enumerate(skeleton.BONE_PARENTS) if p == j] for j in range(len(skeleton.BONE_NAMES))}
+
+    def bone_lengths(jnt: np.ndarray, verts_: np.ndarray) -> np.ndarray:
+        """RMS distance from each head to its children's heads (or to the leaf tip): (N, J)."""
+        out = []
+        for j, name in enumerate(skeleton.BONE_NAMES):
+            if children[j]:
+                d = jnt[:, children[j]] - jnt[:, j : j + 1]
+            else:
+                d = verts_[:, tips[leaf_tip[name]]][:, None] - jnt[:, j : j + 1]
+            out.append(np.sqrt((d**2).sum(-1).mean(-1)))
+        return np.stack(out, axis=1)
+
+    # 3. Bone-length PCA (Sec. 4.2).
+    lengths = bone_lengths(joints, bodies)
+    mean_len = lengths.mean(0)
+    rel = lengths / mean_len - 1.0  # b - b_mean with b_mean = 1
+    _, sv, vt = np.linalg.svd(rel, full_matrices=False)
+    var = sv**2 / (n_bodies - 1)
+    explained = var / var.sum()
+    bone_basis = vt[:num_bone_coeffs] * np.sqrt(var[:num_bone_coeffs, None])  # (Kb, J)
+    c_b = rel @ vt[:num_bone_coeffs].T / np.sqrt(var[:num_bone_coeffs])  # (N, Kb)
+    _log(f"bone PCA: first 3 components explain {100 * explained[:3].sum():.2f} % of bone-length variance")
+
+    # Skeleton of the template: the mean joints; frames from heads and tails.
+    heads_t = jm
+    tails_t = np.zeros_like(heads_t)
+    for j, name in enumerate(skeleton.BONE_NAMES):
+        if name in leaf_tip:
+            tails_t[j] = template[tips[leaf_tip[name]]]
+        else:
+            tails_t[j] = heads_t[bi(skeleton.PRIMARY_CHILD[name])]
+    frames = skeleton.bind_frames(heads_t, tails_t)
+
+    # 4. Un-skin every body at zero pose with its bone scales, then regress and PCA.
+    b = 1.0 + c_b @ bone_basis  # (N, J)
+    parents = np.array(skeleton.BONE_PARENTS)
+    lin, off = _scaled_chain(b, heads_t, parents)
+    blend_l = np.einsum("vj,njkl->nvkl", weights, lin)
+    blend_t = np.einsum("vj,njk->nvk", weights, off)
+    unposed = np.linalg.solve(blend_l, (bodies - blend_t)[..., None])[..., 0]
+    delta = (unposed - template).reshape(n_bodies, -1)
+    gram = c_b.T @ c_b + ridge * n_bodies * np.eye(num_bone_coeffs)
+    correctives = np.linalg.solve(gram, c_b.T @ delta)  # (Kb, 3V)
+    resid = delta - c_b @ correctives
+    _, ssv, svt = np.linalg.svd(resid - resid.mean(0), full_matrices=False)
+    svar = ssv**2 / (n_bodies - 1)
+    shape_basis = svt[:num_shape_coeffs] * np.sqrt(svar[:num_shape_coeffs, None])
+    c_s = (resid - resid.mean(0)) @ svt[:num_shape_coeffs].T / np.sqrt(svar[:num_shape_coeffs])
+    shape_explained = svar / svar.sum()
+    template = template + resid.mean(0).reshape(-1, 3)
+
+    # Symmetrise the bases exactly (the data are symmetric up to round-off).
+    def sym_basis(basis: np.ndarray) -> np.ndarray:
+        bb = basis.reshape(len(basis), -1, 3)
+        return (0.5 * (bb + bb[:, mirror] * flip)).reshape(basis.shape)
+
+    correctives = sym_basis(correctives)
+    shape_basis = sym_basis(shape_basis)
+    bone_basis = 0.5 * (bone_basis + bone_basis[:, bone_mirror])
+    template = 0.5 * (template + template[mirror] * flip)
+
+    # Reconstruction error of the population with the fitted coefficients (zero pose).
+    recon_rest = template + (c_b @ correctives + c_s @ shape_basis).reshape(n_bodies, -1, 3)
+    lin2, off2 = _scaled_chain(1.0 + c_b @ bone_basis, heads_t, parents)
+    blend2 = np.einsum("vj,njkl->nvkl", weights, lin2)
+    recon = np.einsum("nvkl,nvl->nvk", blend2, recon_rest) + np.einsum("vj,njk->nvk", weights, off2)
+    v2v = np.linalg.norm(recon - bodies, axis=-1).mean() * 1000.0
+    _log(f"population reconstruction (zero pose, {num_bone_coeffs}+{num_shape_coeffs} coeffs): {v2v:.2f} mm mean vertex error")
+
+    # UVs (the decimation drops Anny's; xatlas makes an atlas on the template).
+    vmap, faces_uv, uvs = xatlas.parametrize(template.astype(np.float32), dec_f.astype(np.uint32))
+    if not np.array_equal(vmap[faces_uv], dec_f):
+        raise RuntimeError("xatlas changed the face order or corners")
+
+    # Keypoints: BLSM joints, tips, COCO-17 (face ones from Anny's regressor, body ones = joints).
+    coco_mean = coco.mean(0)
+    kp_names: list[str] = list(skeleton.BONE_NAMES) + list(EXTRA_SURFACE) + list(COCO17)
+    kp_joint = np.full(len(kp_names), -1)
+    kp_vert = np.zeros((len(kp_names), 3), dtype=np.int64)
+    kp_w = np.zeros((len(kp_names), 3))
+    for k, name in enumerate(kp_names):
+        if name in skeleton.BONE_NAMES:
+            kp_joint[k] = bi(name)
+        elif name in tips:
+            kp_vert[k] = tips[name]
+            kp_w[k] = (1.0, 0.0, 0.0)
+        else:
+            side, _, part = name.partition("_")
+            if part in COCO_JOINT:
+                kp_joint[k] = bi(f"{COCO_JOINT[part]}_{side[0]}")
+            else:
+                src = coco_mean[FACE_COCO.index(name)]
+                ftri, fb = barycentric_embedding(template, dec_f, src[None])
+                kp_vert[k] = dec_f[ftri[0]]
+                kp_w[k] = fb[0]
+    keypoint_sets = {
+        "coco17": list(COCO17),
+        "blsm_joints": list(skeleton.BONE_NAMES),
+    }
+
+    rest = {}
+    for name in ("knee_l", "elbow_l"):
+        j = bi(name)
+        p = parents[j]
+        up = heads_t[j] - heads_t[p]
+        down = tails_t[j] - heads_t[j]
+        # Signed flexion about the joint's x axis from the parent's direction.
+        ang = math.atan2(np.dot(np.cross(up, down), frames[j][:, 0]), np.dot(up, down))
+        rest[name] = math.degrees(ang)
+    _log(f"rest flexion (about +x, degrees): {json.dumps({k: round(v, 1) for k, v in rest.items()})}")
+
+    arrays = {
+        "template": template.astype(np.float32),
+        "faces": dec_f.astype(np.int32),
+        "uvs": uvs.astype(np.float32),
+        "faces_uv": faces_uv.astype(np.int32),
+        "weights": weights.astype(np.float32),
+        "heads": heads_t.astype(np.float64),
+        "frames": frames.astype(np.float64),
+        "bone_mean": np.ones(len(parents), dtype=np.float32),
+        "bone_basis": bone_basis.astype(np.float32),
+        "bone_correctives": correctives.reshape(num_bone_coeffs, -1, 3).astype(np.float32),
+        "shape_basis": shape_basis.reshape(num_shape_coeffs, -1, 3).astype(np.float32),
+        "vertex_parts": np.array(skeleton.BONE_PARTS)[vertex_bones].astype(np.int32),
+        "vertex_bones": vertex_bones.astype(np.int32),
+        "vertex_mirror": mirror.astype(np.int32),
+        "keypoint_joint": kp_joint.astype(np.int32),
+        "keypoint_vertices": kp_vert.astype(np.int32),
+        "keypoint_weights": kp_w.astype(np.float32),
+    }
+    report = {
+        "n_bodies": n_bodies,
+        "seed": seed,
+        "bone_pca_explained_first3": float(explained[:3].sum()),
+        "bone_pca_explained": [float(x) for x in explained[:num_bone_coeffs]],
+        "shape_pca_explained": [float(x) for x in shape_explained[:num_shape_coeffs]],
+        "population_vertex_error_mm": float(v2v),
+        "mean_bone_lengths_m": {n: float(x) for n, x in zip(skeleton.BONE_NAMES, mean_len)},
+        "rest_flexion_deg": rest,
+        "source_vertices": int(len(mean_verts)),
+        "seconds": round(time.time() - t0, 1),
+    }
+    meta = {
+        "name": "blsm-anny",
+        "version": 1,
+        "built": datetime.date.today().isoformat(),
+        "source": f"anny {anny.__version__} (Apache-2.0 code, CC0 MakeHuman assets)",
+        "build_command": f"blsm build-anny --bodies {n_bodies} --seed {seed}",
+        "bone_names": list(skeleton.BONE_NAMES),
+        "parents": list(skeleton.BONE_PARENTS),
+        "part_names": list(skeleton.PART_NAMES),
+        "keypoint_names": kp_names,
+        "keypoint_sets": keypoint_sets,
+        "build_report": report,
+    }
+    data = io.ModelData(arrays=arrays, meta=meta, dof_table_yaml=dofs.source)
+    return data, report
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="blsm build-anny", description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "data" / "blsm_anny_v1.npz")
+    parser.add_argument("--bodies", type=int, default=600)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    data, report = build(n_bodies=args.bodies, seed=args.seed)
+    io.save_model(data, args.out)
+    print(json.dumps(report, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

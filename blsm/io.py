@@ -1,0 +1,152 @@
+"""The BLSM model file: one versioned ``.npz`` archive (format ``blsm-model``, version 1).
+
+Arrays (V vertices, F faces, J bones, D = 47 atoms, Kb bone and Ks shape coefficients, K keypoints):
+
+=====================  ==================  ==========================================================
+key                    shape / dtype       meaning
+=====================  ==================  ==========================================================
+format                 str                 ``"blsm-model"``
+format_version         int                 1
+meta_json              str                 JSON: bone/part/keypoint names, parents, build provenance
+dof_table_yaml         str                 the DoF table (``blsm/data/dofs.yaml``) it was built with
+template               (V, 3) float32      mean template V_mean, metres, Y up, facing +Z
+faces                  (F, 3) int32        triangles, counter-clockwise seen from outside
+uvs                    (U, 2) float32      texture coordinates in [0, 1], v up
+faces_uv               (F, 3) int32        per-corner indices into ``uvs``
+weights                (V, J) float32      LBS weights, >= 0, rows sum to 1
+heads                  (J, 3) float64      bind-pose joint positions
+frames                 (J, 3, 3) float64   bind frames, columns are the x, y, z axes
+bone_mean              (J,) float32        b_mean of Eq. 4
+bone_basis             (Kb, J) float32     P_b of Eq. 4, per standard deviation
+bone_correctives       (Kb, V, 3) float32  P_bc of Eq. 7
+shape_basis            (Ks, V, 3) float32  P_s of Eq. 8, per standard deviation
+vertex_parts           (V,) int32          index into the six part names
+vertex_bones           (V,) int32          index into the bone names (largest weight)
+vertex_mirror          (V,) int32          vertex that mirrors each vertex across x = 0
+keypoint_joint         (K,) int32          joint index of a joint keypoint, -1 for surface ones
+keypoint_vertices      (K, 3) int32        surface keypoints: three vertices ...
+keypoint_weights       (K, 3) float32      ... and their barycentric weights
+=====================  ==================  ==========================================================
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = "blsm-model"
+FORMAT_VERSION = 1
+
+_ARRAYS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "template": ("f", ("V", "3")),
+    "faces": ("i", ("F", "3")),
+    "uvs": ("f", ("U", "2")),
+    "faces_uv": ("i", ("F", "3")),
+    "weights": ("f", ("V", "J")),
+    "heads": ("f", ("J", "3")),
+    "frames": ("f", ("J", "3", "3")),
+    "bone_mean": ("f", ("J",)),
+    "bone_basis": ("f", ("Kb", "J")),
+    "bone_correctives": ("f", ("Kb", "V", "3")),
+    "shape_basis": ("f", ("Ks", "V", "3")),
+    "vertex_parts": ("i", ("V",)),
+    "vertex_bones": ("i", ("V",)),
+    "vertex_mirror": ("i", ("V",)),
+    "keypoint_joint": ("i", ("K",)),
+    "keypoint_vertices": ("i", ("K", "3")),
+    "keypoint_weights": ("f", ("K", "3")),
+}
+
+
+@dataclass
+class ModelData:
+    """Everything a model file holds, as numpy arrays plus metadata."""
+
+    arrays: dict[str, np.ndarray]
+    meta: dict[str, Any]
+    dof_table_yaml: str
+    path: Path | None = field(default=None)
+
+
+def validate(data: ModelData, where: str = "model") -> None:
+    """Check array presence, kinds and mutually consistent sizes; raise ValueError naming ``where``."""
+    dims: dict[str, int] = {"3": 3, "2": 2}
+    for key, (kind, shape) in _ARRAYS.items():
+        if key not in data.arrays:
+            raise ValueError(f"{where}: missing array {key!r}")
+        arr = data.arrays[key]
+        if arr.dtype.kind != kind and not (kind == "i" and arr.dtype.kind == "u"):
+            raise ValueError(f"{where}: array {key!r} has dtype {arr.dtype}, expected kind {kind!r}")
+        if arr.ndim != len(shape):
+            raise ValueError(f"{where}: array {key!r} has shape {arr.shape}, expected {shape}")
+        for size, name in zip(arr.shape, shape):
+            if dims.setdefault(name, size) != size:
+                raise ValueError(
+                    f"{where}: array {key!r} has shape {arr.shape}; dimension {name} should be "
+                    f"{dims[name]}"
+                )
+    for key in ("bone_names", "parents", "part_names", "keypoint_names"):
+        if key not in data.meta:
+            raise ValueError(f"{where}: metadata is missing {key!r}")
+    if len(data.meta["bone_names"]) != dims["J"] or len(data.meta["parents"]) != dims["J"]:
+        raise ValueError(f"{where}: bone_names/parents do not match J = {dims['J']}")
+    if len(data.meta["keypoint_names"]) != dims["K"]:
+        raise ValueError(f"{where}: keypoint_names do not match K = {dims['K']}")
+    w = data.arrays["weights"]
+    if (w < 0).any() or not np.allclose(w.sum(1), 1.0, atol=1e-4):
+        raise ValueError(f"{where}: LBS weights must be >= 0 and sum to 1 per vertex")
+    faces = data.arrays["faces"]
+    if faces.min() < 0 or faces.max() >= dims["V"]:
+        raise ValueError(f"{where}: faces index outside [0, {dims['V']})")
+
+
+def save_model(data: ModelData, path: str | Path) -> Path:
+    """Write a model file atomically (temporary file, then rename)."""
+    path = Path(path)
+    validate(data, str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(
+            fh,
+            format=np.array(FORMAT),
+            format_version=np.array(FORMAT_VERSION),
+            meta_json=np.array(json.dumps(data.meta, sort_keys=True)),
+            dof_table_yaml=np.array(data.dof_table_yaml),
+            **data.arrays,
+        )
+    os.replace(tmp, path)
+    return path
+
+
+def read_model(path: str | Path) -> ModelData:
+    """Read and validate a model file; errors name the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such model file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            raw = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise ValueError(f"{path}: not a readable .npz model file ({exc})") from exc
+    if str(raw.get("format", "")) != FORMAT:
+        raise ValueError(f"{path}: not a BLSM model file (format={raw.get('format')!r})")
+    version = int(raw["format_version"])
+    if version != FORMAT_VERSION:
+        raise ValueError(f"{path}: format_version {version} is not supported (expected 1)")
+    try:
+        meta = json.loads(str(raw["meta_json"]))
+    except (KeyError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: bad or missing meta_json ({exc})") from exc
+    if "dof_table_yaml" not in raw:
+        raise ValueError(f"{path}: missing dof_table_yaml")
+    arrays = {k: v for k, v in raw.items() if k in _ARRAYS}
+    data = ModelData(arrays=arrays, meta=meta, dof_table_yaml=str(raw["dof_table_yaml"]), path=path)
+    validate(data, str(path))
+    return data
