@@ -218,6 +218,13 @@ def build(
 
     groups = anny_bone_groups(labels)
     joints = heads[:, [g[0] for g in groups]]  # (N, J, 3)
+    # Express every body relative to its root joint (at the population's mean root), as BLSM keeps
+    # the root fixed while bones scale; otherwise the correctives would have to carry the body's
+    # translation (a child's pelvis is lower than an adult's).
+    shift = joints[:, :1] - joints[:, :1].mean(0, keepdims=True)  # (N, 1, 3)
+    verts = verts - shift
+    joints = joints - shift
+    coco = coco - shift
     mean_verts = verts.mean(0)
 
     # 1. Template topology.
@@ -383,6 +390,8 @@ def build(
         "bone_basis": bone_basis.astype(np.float32),
         "bone_correctives": correctives.reshape(num_bone_coeffs, -1, 3).astype(np.float32),
         "shape_basis": shape_basis.reshape(num_shape_coeffs, -1, 3).astype(np.float32),
+        "population_bone": c_b.astype(np.float32),
+        "population_shape": c_s.astype(np.float32),
         "vertex_parts": np.array(skeleton.BONE_PARTS)[vertex_bones].astype(np.int32),
         "vertex_bones": vertex_bones.astype(np.int32),
         "vertex_mirror": mirror.astype(np.int32),

@@ -134,17 +134,19 @@ def _kp_side(name: str) -> str:
 
 
 def sample_bodies(model, n: int, seed: int) -> dict[str, torch.Tensor]:
-    """Random bodies for the demo: bone and shape ~ N(0, 1) clipped to +-2.5, angles uniform in half
-    of each range (which contains 0), yaw uniform in +-45 degrees."""
+    """Random bodies for the demo: bone and shape coefficients of random members of the population
+    the model was built from (linear coefficients far outside it give implausible bodies), angles
+    uniform in half of each range (which contains 0), yaw uniform in +-45 degrees."""
     g = torch.Generator().manual_seed(seed)
+    who = torch.randint(0, model.population_bone.shape[0], (n,), generator=g)
     lo, hi = model.dof_limits[:, 0], model.dof_limits[:, 1]
     u = torch.rand(n, model.num_dofs, generator=g)
     angles = 0.5 * (lo + u * (hi - lo))
     yaw = (torch.rand(n, generator=g) - 0.5) * (math.pi / 2)
     return dict(
         angles=angles,
-        bone=torch.randn(n, model.num_bone_coeffs, generator=g).clamp(-2.5, 2.5),
-        shape=torch.randn(n, model.num_shape_coeffs, generator=g).clamp(-2.5, 2.5),
+        bone=model.population_bone[who],
+        shape=model.population_shape[who],
         global_orient=torch.stack([torch.zeros(n), yaw, torch.zeros(n)], dim=1),
     )
 

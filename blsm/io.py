@@ -20,6 +20,8 @@ bone_mean              (J,) float32        b_mean of Eq. 4
 bone_basis             (Kb, J) float32     P_b of Eq. 4, per standard deviation
 bone_correctives       (Kb, V, 3) float32  P_bc of Eq. 7
 shape_basis            (Ks, V, 3) float32  P_s of Eq. 8, per standard deviation
+population_bone        (N, Kb) float32     c_b of the N bodies the model was built from
+population_shape       (N, Ks) float32     c_s of the same bodies (an empirical shape prior)
 vertex_parts           (V,) int32          index into the six part names
 vertex_bones           (V,) int32          index into the bone names (largest weight)
 vertex_mirror          (V,) int32          vertex that mirrors each vertex across x = 0
@@ -55,6 +57,8 @@ _ARRAYS: dict[str, tuple[str, tuple[str, ...]]] = {
     "bone_basis": ("f", ("Kb", "J")),
     "bone_correctives": ("f", ("Kb", "V", "3")),
     "shape_basis": ("f", ("Ks", "V", "3")),
+    "population_bone": ("f", ("N", "Kb")),
+    "population_shape": ("f", ("N", "Ks")),
     "vertex_parts": ("i", ("V",)),
     "vertex_bones": ("i", ("V",)),
     "vertex_mirror": ("i", ("V",)),

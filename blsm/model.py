@@ -118,6 +118,8 @@ class BLSM(nn.Module):
         buf("bone_mean", torch.as_tensor(a["bone_mean"], dtype=f32))
         buf("bone_basis", torch.as_tensor(a["bone_basis"], dtype=f32))
         buf("bone_correctives", torch.as_tensor(a["bone_correctives"], dtype=f32))
+        buf("population_bone", torch.as_tensor(a["population_bone"], dtype=f32))
+        buf("population_shape", torch.as_tensor(a["population_shape"], dtype=f32))
         buf("vertex_parts", torch.as_tensor(a["vertex_parts"], dtype=torch.long))
         buf("vertex_bones", torch.as_tensor(a["vertex_bones"], dtype=torch.long))
         buf("vertex_mirror", torch.as_tensor(a["vertex_mirror"], dtype=torch.long))
