@@ -101,21 +101,30 @@ def cmd_atoms(args: argparse.Namespace) -> int:
     )
     print(f"wrote {atoms_png}")
 
-    # Fig. 8: +-3 sigma along the first bone and shape components.
-    rows = []
-    for kind, n in (("bone", model.num_bone_coeffs), ("shape", model.num_shape_coeffs)):
+    # Fig. 8: +-3 sigma along the first bone and shape components. Tiles of one component share a
+    # camera so that sizes compare; a value outside the range of the population the model was built
+    # from is marked with '*' (linear bases extrapolate poorly there).
+    rows, cams8 = [], []
+    for kind, n, pop in (
+        ("bone", model.num_bone_coeffs, model.population_bone),
+        ("shape", model.num_shape_coeffs, model.population_shape),
+    ):
         for c in range(min(3, n)):
+            group = []
             for sigma in (-3.0, 0.0, 3.0):
                 coeff = torch.zeros(1, n)
                 coeff[0, c] = sigma
-                rows.append((f"{kind}[{c}] {sigma:+.0f} sd", {kind: coeff}))
-    with torch.no_grad():
-        meshes = [[_mesh(model(**kw).vertices[0], faces)] for _, kw in rows]
-    all_meshes = [m for item in meshes for m in item]
-    cam = render.auto_camera(all_meshes, w, h, elevation_deg=8.0)
+                outside = not float(pop[:, c].min()) <= sigma <= float(pop[:, c].max())
+                with torch.no_grad():
+                    mesh = _mesh(model(**{kind: coeff}).vertices[0], faces)
+                group.append(mesh)
+                rows.append((f"{kind}[{c}] {sigma:+.0f} sd{' *' if outside else ''}", [mesh]))
+            cam = render.auto_camera(group, w, h, elevation_deg=8.0)
+            cams8 += [cam] * 3
+    cam_of = {id(item): cam for (_, item), cam in zip(rows, cams8)}
     comps_png = render.render_grid(
-        meshes, out_dir / "components.png", labels=[r[0] for r in rows], cols=9,
-        tile_size=(w, h), camera_fn=lambda item: cam, spp=args.spp,
+        [r[1] for r in rows], out_dir / "components.png", labels=[r[0] for r in rows], cols=9,
+        tile_size=(w, h), camera_fn=lambda item: cam_of[id(item)], spp=args.spp,
     )
     print(f"wrote {comps_png}")
     return 0
