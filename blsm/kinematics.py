@@ -17,6 +17,8 @@ Rotations are built as ``I + Q (R - I) Q^T`` so that the rest pose gives the ide
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 
@@ -104,6 +106,23 @@ def local_scales(b: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
     return b / denom
 
 
+@functools.lru_cache(maxsize=32)
+def _tree_levels(parents: tuple[int, ...]) -> list[tuple[list[int], list[int]]]:
+    """Bones grouped by depth: [(indices, parent indices)], the first level being the root."""
+    depth = []
+    for j, p in enumerate(parents):
+        if p >= j:
+            raise ValueError(f"parents must precede children (bone {j} has parent {p})")
+        depth.append(0 if p < 0 else depth[p] + 1)
+    if depth.count(0) != 1:
+        raise ValueError("the bone tree must have exactly one root")
+    out = []
+    for d in range(max(depth) + 1):
+        idx = [j for j in range(len(parents)) if depth[j] == d]
+        out.append((idx, [max(parents[j], 0) for j in idx]))
+    return out
+
+
 def forward_kinematics(
     rotations: torch.Tensor,
     scales: torch.Tensor,
@@ -133,24 +152,22 @@ def forward_kinematics(
     # Q (R - I) Q^T is exactly 0 where R is exactly I, so the rest pose stays exact.
     local = eye + frames @ (rotations - eye) @ frames.transpose(-1, -2)  # (B, J, 3, 3)
     local = scales[..., None, None] * local
-    lin: list[torch.Tensor] = []
-    off: list[torch.Tensor] = []
-    for j, p in enumerate(parents):
-        h = heads[j]
-        l_j = local[:, j]
-        t_j = h - l_j @ h  # (B, 3)
-        if p < 0:
-            if global_rotation is not None:
-                l_j = global_rotation @ l_j
-                t_j = h - l_j @ h
-            if transl is not None:
-                t_j = t_j + transl
-            lin.append(l_j)
-            off.append(t_j)
-        else:
-            lin.append(lin[p] @ l_j)
-            off.append((lin[p] @ t_j[..., None])[..., 0] + off[p])
-    linear = torch.stack(lin, dim=1)
-    offset = torch.stack(off, dim=1)
+    t_local = heads - (local @ heads[..., None])[..., 0]  # (B, J, 3)
+    levels = _tree_levels(tuple(parents))
+    root = levels[0][0]
+    l_root, t_root = local[:, root], t_local[:, root]
+    if global_rotation is not None:
+        l_root = global_rotation[:, None] @ l_root
+        t_root = heads[root] - (l_root @ heads[root][..., None])[..., 0]
+    if transl is not None:
+        t_root = t_root + transl[:, None]
+    linear = local.index_copy(1, torch.as_tensor(root, device=local.device), l_root)
+    offset = t_local.index_copy(1, torch.as_tensor(root, device=local.device), t_root)
+    # One batched product per tree level (parents are final once their level is done).
+    for idx, par in levels[1:]:
+        idx_t = torch.as_tensor(idx, device=local.device)
+        lp = linear[:, par]
+        linear = linear.index_copy(1, idx_t, lp @ local[:, idx])
+        offset = offset.index_copy(1, idx_t, (lp @ t_local[:, idx, :, None])[..., 0] + offset[:, par])
     joints = (linear @ heads[..., None])[..., 0] + offset
     return linear, offset, joints

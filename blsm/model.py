@@ -127,6 +127,13 @@ class BLSM(nn.Module):
         buf("keypoint_vertices", torch.as_tensor(a["keypoint_vertices"], dtype=torch.long))
         buf("keypoint_weights", torch.as_tensor(a["keypoint_weights"], dtype=f32))
         buf("parents_t", torch.as_tensor(self.parents, dtype=torch.long))
+        chain = torch.zeros(len(self.parents), len(self.parents))
+        for j in range(len(self.parents)):
+            k = j
+            while self.parents[k] >= 0:  # chain[j, k] = 1 for every non-root bone on root -> j
+                chain[j, k] = 1.0
+                k = self.parents[k]
+        buf("chain", chain)
         buf("dof_limits", self.dof_table.limits_tensor().to(f32))
         buf("dof_axis", torch.tensor([d.axis for d in dofs], dtype=torch.long))
         buf("dof_sign", torch.tensor([float(d.axis_sign) for d in dofs], dtype=f32))
@@ -280,9 +287,11 @@ class BLSM(nn.Module):
         vertices = linear_blend_skinning(template, self.weights, linear, offset)  # Eq. 12
         keypoints = self._keypoints(vertices, joints)
 
-        # Bind pose of this person: scaled bones, no rotation.
-        eye = torch.eye(3, dtype=dtype, device=device).expand(batch, self.num_joints, 3, 3)
-        _, _, rest_joints = forward_kinematics(eye, s, self.heads, self.frames, self.parents)
+        # Bind pose of this person (scaled bones, no rotation): each bone's offset to a child
+        # scales with the bone's b, so the joints are the root plus scaled offsets along the chain.
+        par = self.parents_t.clamp(min=0)
+        scaled = b[:, par, None] * (self.heads - self.heads[par])  # (B, J, 3)
+        rest_joints = self.heads[0] + torch.einsum("jk,bkc->bjc", self.chain, scaled)
         return BLSMOutput(
             vertices=vertices,
             joints=joints,

@@ -71,6 +71,14 @@ def test_bone_scales_follow_eq4_and_joints_scale(model, gen):
     rest = (model.heads[a] - model.heads[k]).norm()
     posed = (out.joints[:, a] - out.joints[:, k]).norm(dim=-1)
     assert torch.allclose(posed, out.bone_scales[:, k] * rest, rtol=1e-5)
+    # rest_joints are the chain of Eq. 3 with identity rotations.
+    from blsm.kinematics import forward_kinematics, local_scales
+
+    eye = torch.eye(3).expand(2, model.num_joints, 3, 3)
+    s = local_scales(out.bone_scales, model.parents_t)
+    ref = forward_kinematics(eye, s, model.heads, model.frames, model.parents)[2]
+    assert torch.allclose(out.rest_joints, ref, atol=1e-6)
+    assert torch.allclose(out.rest_joints, out.joints, atol=1e-6)  # zero pose
 
 
 def test_mirrored_pose_mirrors_the_mesh_within_1mm(model, gen):
