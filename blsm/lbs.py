@@ -69,6 +69,10 @@ def linear_blend_skinning(
         (B, V, 3) posed vertices.
     """
     eye = torch.eye(3, dtype=linear.dtype, device=linear.device)
-    blended = torch.einsum("vj,bjkl->bvkl", weights, linear - eye)  # (B, V, 3, 3)
-    moved = torch.einsum("bvkl,bvl->bvk", blended, vertices)  # (B, V, 3)
-    return vertices + moved + torch.einsum("vj,bjk->bvk", weights, offset)
+    batch, num_joints = linear.shape[:2]
+    # Blend [L - I | t] with one (V, J) x (J, 12) matmul per batch, then apply per vertex.
+    packed = torch.cat([(linear - eye).reshape(batch, num_joints, 9), offset], dim=-1)  # (B, J, 12)
+    blended = weights @ packed  # (B, V, 12)
+    mat = blended[..., :9].reshape(batch, -1, 3, 3)
+    moved = (mat @ vertices[..., None])[..., 0]  # (B, V, 3)
+    return vertices + moved + blended[..., 9:]
