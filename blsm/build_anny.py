@@ -33,6 +33,8 @@ import torch
 
 from blsm import io, skeleton
 from blsm.joint_limits import DEFAULT_DOF_TABLE, load_dof_table
+from blsm.kinematics import forward_kinematics, local_scales
+from blsm.lbs import linear_blend_skinning
 
 # Anny bones folded into each BLSM bone; the first one gives the BLSM bone's head.
 ANNY_BONES: dict[str, tuple[str, ...]] = {
@@ -157,20 +159,15 @@ def _interp(values: np.ndarray, faces: np.ndarray, tri: np.ndarray, bary: np.nda
     return np.einsum("...pkc,pk->...pc", values[..., corner, :], bary)
 
 
-def _scaled_chain(b: np.ndarray, heads: np.ndarray, parents: np.ndarray):
-    """Skinning transforms at zero pose for bone scales b (N, J): Eqs. 3 and 5 in numpy."""
-    n, nj = b.shape
-    lin = np.zeros((n, nj, 3, 3))
-    off = np.zeros((n, nj, 3))
-    for j, p in enumerate(parents):
-        s = b[:, j] / (b[:, p] if p >= 0 else 1.0)
-        l_j = s[:, None, None] * np.eye(3)
-        t_j = heads[j] - np.einsum("nkl,l->nk", l_j, heads[j])
-        if p < 0:
-            lin[:, j], off[:, j] = l_j, t_j
-        else:
-            lin[:, j] = lin[:, p] @ l_j
-            off[:, j] = np.einsum("nkl,nl->nk", lin[:, p], t_j) + off[:, p]
+def _scaled_chain(b: np.ndarray, heads: np.ndarray, frames: np.ndarray):
+    """Skinning transforms (linear (N, J, 3, 3), offset (N, J, 3)) at zero pose for bone scales b
+    (N, J): Eqs. 3 and 5 through :mod:`blsm.kinematics`, in float64."""
+    bt = torch.as_tensor(b, dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64).expand(*bt.shape, 3, 3)
+    s = local_scales(bt, torch.as_tensor(skeleton.BONE_PARENTS))
+    lin, off, _ = forward_kinematics(
+        eye, s, torch.as_tensor(heads), torch.as_tensor(frames), list(skeleton.BONE_PARENTS)
+    )
     return lin, off
 
 
@@ -303,7 +300,8 @@ def build(
     # 4. Un-skin every body at zero pose with its bone scales, then regress and PCA.
     b = 1.0 + c_b @ bone_basis  # (N, J)
     parents = np.array(skeleton.BONE_PARENTS)
-    lin, off = _scaled_chain(b, heads_t, parents)
+    lin, off = (t.numpy() for t in _scaled_chain(b, heads_t, frames))
+    # Un-skinning inverts the blended transform of Eq. 12 per vertex.
     blend_l = np.einsum("vj,njkl->nvkl", weights, lin)
     blend_t = np.einsum("vj,njk->nvk", weights, off)
     unposed = np.linalg.solve(blend_l, (bodies - blend_t)[..., None])[..., 0]
@@ -330,9 +328,8 @@ def build(
 
     # Reconstruction error of the population with the fitted coefficients (zero pose).
     recon_rest = template + (c_b @ correctives + c_s @ shape_basis).reshape(n_bodies, -1, 3)
-    lin2, off2 = _scaled_chain(1.0 + c_b @ bone_basis, heads_t, parents)
-    blend2 = np.einsum("vj,njkl->nvkl", weights, lin2)
-    recon = np.einsum("nvkl,nvl->nvk", blend2, recon_rest) + np.einsum("vj,njk->nvk", weights, off2)
+    lin2, off2 = _scaled_chain(1.0 + c_b @ bone_basis, heads_t, frames)
+    recon = linear_blend_skinning(torch.as_tensor(recon_rest), torch.as_tensor(weights), lin2, off2).numpy()
     v2v = np.linalg.norm(recon - bodies, axis=-1).mean() * 1000.0
     _log(f"population reconstruction (zero pose, {num_bone_coeffs}+{num_shape_coeffs} coeffs): {v2v:.2f} mm mean vertex error")
 

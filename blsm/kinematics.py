@@ -107,7 +107,7 @@ def local_scales(b: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=32)
-def _tree_levels(parents: tuple[int, ...]) -> list[tuple[list[int], list[int]]]:
+def tree_levels(parents: tuple[int, ...]) -> list[tuple[list[int], list[int]]]:
     """Bones grouped by depth: [(indices, parent indices)], the first level being the root."""
     depth = []
     for j, p in enumerate(parents):
@@ -153,7 +153,7 @@ def forward_kinematics(
     local = eye + frames @ (rotations - eye) @ frames.transpose(-1, -2)  # (B, J, 3, 3)
     local = scales[..., None, None] * local
     t_local = heads - (local @ heads[..., None])[..., 0]  # (B, J, 3)
-    levels = _tree_levels(tuple(parents))
+    levels = tree_levels(tuple(parents))
     root = levels[0][0]
     l_root, t_root = local[:, root], t_local[:, root]
     if global_rotation is not None:

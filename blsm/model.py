@@ -16,7 +16,13 @@ from torch import nn
 
 from blsm import io
 from blsm.joint_limits import DofTable, angles_from_unconstrained, parse_dof_table
-from blsm.kinematics import bone_scales, forward_kinematics, joint_rotations, local_scales
+from blsm.kinematics import (
+    tree_levels,
+    bone_scales,
+    forward_kinematics,
+    joint_rotations,
+    local_scales,
+)
 from blsm.lbs import blend_shapes, linear_blend_skinning, linear_shape
 
 DEFAULT_MODEL = Path(__file__).parent / "data" / "blsm_anny_v1.npz"
@@ -87,9 +93,10 @@ class BLSM(nn.Module):
             k: [self.keypoint_names.index(n) for n in v]
             for k, v in meta.get("keypoint_sets", {}).items()
         }
-        for j, p in enumerate(self.parents):
-            if p >= j:
-                raise ValueError(f"{where}: bones must be ordered parents first (bone {j})")
+        try:
+            tree_levels(tuple(self.parents))  # validates the bone order once, cached for forward
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from exc
         unknown = {d.joint for d in self.dof_table.dofs} - set(self.bone_names)
         if unknown:
             raise ValueError(f"{where}: DoF table names unknown joints {sorted(unknown)}")
