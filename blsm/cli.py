@@ -242,6 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--bodies", type=int, default=600)
     build.add_argument("--seed", type=int, default=0)
     build.set_defaults(func=None)
+    from blsm.mocap.cli import add_parser as add_mocap
+
+    add_mocap(sub)
     return p
 
 

@@ -25,3 +25,12 @@ def model64(model):
 @pytest.fixture
 def gen():
     return torch.Generator().manual_seed(0)
+
+
+@pytest.fixture(scope="session")
+def shared_mocap() -> Path:
+    """The CMU clips of ../shared/mocap/cmu (CI always has them)."""
+    path = SHARED / "mocap" / "cmu"
+    if not (path / "002_01.bvh").is_file():
+        pytest.skip(f"needs the shared CMU mocap clips at {path} (not present on this machine)")
+    return path

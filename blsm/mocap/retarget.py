@@ -1,0 +1,573 @@
+"""Retargeting motion capture onto the 47 joint-limited BLSM atoms (paper 000 Sec. 3.1, Eq. 6).
+
+For every frame we look for the unconstrained pose ``x`` (47,) and the global orientation that best
+reproduce the DIRECTIONS of the source skeleton's segments,
+
+    min_{x, R}  sum_i w_i (1 - <u_i(x, R), d_i>)  +  lambda * |theta(x)|^2,
+
+where ``d_i`` is the unit direction between two source points, ``u_i`` the unit direction between the
+corresponding BLSM points of the mean body posed with ``theta = Eq. 6(x)`` and root rotation ``R``, and
+the small ridge on the angles settles what the directions leave open (how a bend is shared among the
+spine joints, the twist of a straight limb). Because the angles go through Eq. 6 the limits hold by
+construction: what the skeleton cannot do shows up in the residuals instead of in the pose.
+
+The mapping from source points to BLSM points is a table per source skeleton
+(``blsm/data/mocap_maps/*.yaml``, documented in ``cc_base.yaml``). The solve is batched over a chunk
+of frames with Adam, warm-started from the last solved frame; the global rotation starts at the
+Kabsch alignment of the pelvis directions and is refined with the rest. The root translation is the
+source root position scaled by the leg-length ratio (BLSM mean leg / source leg), with the source
+floor (y = 0) moved to the BLSM mean body's sole height.
+
+Residuals per frame: mean and max angle between source and BLSM segment directions (degrees), and
+MPJPE (mm) between the BLSM points and the source chain rebuilt with the BLSM segment lengths from
+the BLSM root.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
+from blsm.kinematics import forward_kinematics, joint_rotations, local_scales
+from blsm.mocap.bvh import BvhError, BvhMotion
+
+MAPS_DIR = Path(__file__).resolve().parent.parent / "data" / "mocap_maps"
+AXIS_POINT_DISTANCE = 0.05  # metres from the bone head for {bone, axis} points
+_AXES = {"+x": (0, 1.0), "-x": (0, -1.0), "+y": (1, 1.0), "-y": (1, -1.0), "+z": (2, 1.0), "-z": (2, -1.0)}
+
+
+# ------------------------------------------------------------------------------------------------
+# Mapping tables
+
+
+@dataclass(frozen=True)
+class Pair:
+    """A direction matched between the rigs: BLSM ``a -> b`` against source ``a -> b``."""
+
+    blsm_from: Any
+    blsm_to: Any
+    source_from: tuple[str, ...]
+    source_to: tuple[str, ...]
+    weight: float
+
+    @property
+    def label(self) -> str:
+        def name(p: Any) -> str:
+            if isinstance(p, dict):
+                return f"{p['bone']}{p['axis']}"
+            return p if isinstance(p, str) else "+".join(p)
+
+        return f"{name(self.blsm_from)}->{name(self.blsm_to)}"
+
+
+@dataclass(frozen=True)
+class SkeletonMap:
+    """A source-skeleton -> BLSM mapping table (see ``blsm/data/mocap_maps/cc_base.yaml``)."""
+
+    name: str
+    description: str
+    root_blsm: str
+    root_source: str
+    leg_blsm: tuple[str, ...]
+    leg_source: tuple[str, ...]
+    segments: tuple[Pair, ...]
+    twist: tuple[Pair, ...]
+    orient: tuple[str, ...]
+    path: str
+
+    def source_joints(self) -> list[str]:
+        names = [self.root_source, *self.leg_source]
+        for p in self.segments + self.twist:
+            names += [*p.source_from, *p.source_to]
+        return list(dict.fromkeys(names))
+
+
+def _src_point(v: Any, where: str) -> tuple[str, ...]:
+    if isinstance(v, str):
+        return (v,)
+    if isinstance(v, list) and v and all(isinstance(s, str) for s in v):
+        return tuple(v)
+    raise ValueError(f"{where}: a source point is a joint name or a list of names, got {v!r}")
+
+
+def _blsm_point(v: Any, where: str) -> Any:
+    if isinstance(v, str):
+        return v
+    if isinstance(v, list) and v and all(isinstance(s, str) for s in v):
+        return tuple(v)
+    if isinstance(v, dict) and set(v) == {"bone", "axis"} and v["axis"] in _AXES:
+        return {"bone": str(v["bone"]), "axis": v["axis"]}
+    raise ValueError(f"{where}: a BLSM point is a name, a list of names or {{bone, axis}}, got {v!r}")
+
+
+def load_map(path: str | Path) -> SkeletonMap:
+    """Read and validate a mapping table (YAML)."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read mapping table ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: a mapping table is a YAML mapping")
+    for key in ("name", "root", "leg", "segments"):
+        if key not in doc:
+            raise ValueError(f"{path}: missing key {key!r}")
+
+    def pairs(key: str) -> tuple[Pair, ...]:
+        out = []
+        for i, row in enumerate(doc.get(key) or []):
+            where = f"{path}: {key}[{i}]"
+            if not isinstance(row, list) or len(row) != 5:
+                raise ValueError(f"{where}: expected [blsm_from, blsm_to, source_from, source_to, weight]")
+            w = row[4]
+            if not isinstance(w, (int, float)) or not w > 0:
+                raise ValueError(f"{where}: weight must be a positive number, got {w!r}")
+            out.append(
+                Pair(
+                    _blsm_point(row[0], where),
+                    _blsm_point(row[1], where),
+                    _src_point(row[2], where),
+                    _src_point(row[3], where),
+                    float(w),
+                )
+            )
+        return tuple(out)
+
+    segs = pairs("segments")
+    root = doc["root"]
+    if not isinstance(root, dict) or set(root) != {"blsm", "source"}:
+        raise ValueError(f"{path}: root must be {{blsm: NAME, source: NAME}}")
+    # The segments must form a tree over BLSM points rooted at root.blsm (for the MPJPE chain).
+    seen = {root["blsm"]}
+    for i, s in enumerate(segs):
+        if not (isinstance(s.blsm_from, str) and isinstance(s.blsm_to, str)):
+            raise ValueError(f"{path}: segments[{i}]: chain points must be single names")
+        if s.blsm_from not in seen:
+            raise ValueError(f"{path}: segments[{i}] starts at {s.blsm_from!r}, not yet reached from the root")
+        if s.blsm_to in seen:
+            raise ValueError(f"{path}: segments[{i}] reaches {s.blsm_to!r} a second time")
+        seen.add(s.blsm_to)
+    twist = pairs("twist")
+    labels = [p.label for p in segs + twist]
+    orient = doc.get("orient") or []
+    if len(orient) < 2 or any(o not in labels for o in orient):
+        raise ValueError(
+            f"{path}: orient must name at least two non-parallel pairs of segments/twist "
+            f"(labels like 'pelvis->neck'), got {orient!r}"
+        )
+    leg = doc["leg"]
+    if not isinstance(leg, dict) or len(leg.get("blsm", [])) < 2 or len(leg.get("source", [])) != len(
+        leg.get("blsm", [])
+    ):
+        raise ValueError(f"{path}: leg must list the same number (>= 2) of blsm and source joints")
+    return SkeletonMap(
+        name=str(doc["name"]),
+        description=str(doc.get("description", "")),
+        root_blsm=str(root["blsm"]),
+        root_source=str(root["source"]),
+        leg_blsm=tuple(leg["blsm"]),
+        leg_source=tuple(leg["source"]),
+        segments=segs,
+        twist=twist,
+        orient=tuple(orient),
+        path=str(path),
+    )
+
+
+def available_maps() -> dict[str, Path]:
+    """The packaged mapping tables by name."""
+    return {p.stem: p for p in sorted(MAPS_DIR.glob("*.yaml"))}
+
+
+def select_map(motion: BvhMotion, name: str | None = None) -> SkeletonMap:
+    """The mapping table for a clip: the named one, or the first whose source joints all exist.
+
+    Raises:
+        BvhError: ``"<file>:<line>: ..."`` naming the first required joint the skeleton lacks (line
+            of the ROOT declaration).
+    """
+    maps = available_maps()
+    if name is not None:
+        if Path(name).suffix in (".yaml", ".yml"):
+            candidates = [load_map(name)]
+        elif name in maps:
+            candidates = [load_map(maps[name])]
+        else:
+            raise ValueError(f"unknown mapping table {name!r} (packaged: {sorted(maps)})")
+    else:
+        candidates = [load_map(p) for p in maps.values()]
+    have = set(motion.skeleton.names)
+    best: tuple[int, SkeletonMap, list[str]] | None = None
+    for m in candidates:
+        missing = [j for j in m.source_joints() if j not in have]
+        if not missing:
+            return m
+        if best is None or len(missing) < best[0]:
+            best = (len(missing), m, missing)
+    assert best is not None
+    line = motion.skeleton.lines[0] if motion.skeleton.lines else 1
+    raise BvhError(
+        f"{motion.path}:{line}: unknown skeleton: no joint {best[2][0]!r} required by mapping "
+        f"table {best[1].name!r} ({best[0]} of its joints missing)"
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Points of the two rigs
+
+
+class _BlsmPoints:
+    """Evaluates named BLSM points (joints, keypoints, bone-axis points) from the FK transforms."""
+
+    def __init__(self, model: Any, specs: list[Any]) -> None:
+        self.model = model
+        bone_names = model.bone_names
+        kp_names = model.keypoint_names
+        base: list[tuple[str, Any]] = []  # ("joint", j) | ("vertex", (idx, w)) | ("axis", (j, p))
+        index: dict[str, int] = {}
+
+        def add(key: str, item: tuple[str, Any]) -> int:
+            if key not in index:
+                index[key] = len(base)
+                base.append(item)
+            return index[key]
+
+        def one(name: str) -> int:
+            if name in bone_names:
+                return add(name, ("joint", bone_names.index(name)))
+            if name in kp_names:
+                k = kp_names.index(name)
+                j = int(model.keypoint_joint[k])
+                if j >= 0:
+                    return add(name, ("joint", j))
+                return add(name, ("kp", k))
+            raise ValueError(f"unknown BLSM point {name!r} (not a bone or keypoint of the model)")
+
+        rows: list[list[int]] = []
+        for s in specs:
+            if isinstance(s, str):
+                rows.append([one(s)])
+            elif isinstance(s, tuple):
+                rows.append([one(n) for n in s])
+            else:
+                if s["bone"] not in bone_names:
+                    raise ValueError(f"unknown bone {s['bone']!r} in an axis point")
+                j = bone_names.index(s["bone"])
+                ax, sign = _AXES[s["axis"]]
+                p = model.heads[j] + sign * AXIS_POINT_DISTANCE * model.frames[j][:, ax]
+                rows.append([add(f"{s['bone']}{s['axis']}", ("axis", (j, p)))])
+        self.base = base
+        mix = torch.zeros(len(specs), len(base), dtype=model.template.dtype)
+        for i, r in enumerate(rows):
+            mix[i, r] = 1.0 / len(r)
+        self.mix = mix
+        self.joint_idx = [i for i, (k, _) in enumerate(base) if k == "joint"]
+        self.joint_src = torch.tensor([v for k, v in base if k == "joint"], dtype=torch.long)
+        self.kp_idx = [i for i, (k, _) in enumerate(base) if k == "kp"]
+        kps = [v for k, v in base if k == "kp"]
+        self.kp_vertices = model.keypoint_vertices[kps]  # (Kk, n)
+        self.kp_weights = model.keypoint_weights[kps]  # (Kk, n)
+        self.axis_idx = [i for i, (k, _) in enumerate(base) if k == "axis"]
+        self.axis_bone = torch.tensor([v[0] for k, v in base if k == "axis"], dtype=torch.long)
+        self.axis_rest = (
+            torch.stack([v[1] for k, v in base if k == "axis"])
+            if self.axis_idx
+            else model.heads.new_zeros(0, 3)
+        )
+        flat = self.kp_vertices.reshape(-1)
+        self.kp_template = model.template[flat]  # (Kk*n, 3) mean body, zero shape
+        self.kp_skin = model.weights[flat]  # (Kk*n, J)
+
+    def __call__(self, linear: torch.Tensor, offset: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        """(B, P, 3) points for the specs, from FK ``linear`` (B,J,3,3), ``offset`` (B,J,3), joints."""
+        batch = joints.shape[0]
+        pts = joints.new_zeros(batch, len(self.base), 3)
+        if self.joint_idx:
+            pts[:, self.joint_idx] = joints[:, self.joint_src]
+        if self.kp_idx:
+            # LBS (Eq. 12) of the keypoints' own vertices only.
+            lin = torch.einsum("vj,bjcd->bvcd", self.kp_skin, linear)
+            off = torch.einsum("vj,bjc->bvc", self.kp_skin, offset)
+            v = (lin @ self.kp_template[..., None])[..., 0] + off
+            v = v.reshape(batch, *self.kp_vertices.shape, 3)
+            pts[:, self.kp_idx] = (v * self.kp_weights[..., None]).sum(2)
+        if self.axis_idx:
+            lin = linear[:, self.axis_bone]
+            pts[:, self.axis_idx] = (lin @ self.axis_rest[..., None])[..., 0] + offset[:, self.axis_bone]
+        return torch.einsum("pq,bqc->bpc", self.mix.to(pts.dtype), pts)
+
+
+def _source_mix(names: list[str], specs: list[tuple[str, ...]]) -> np.ndarray:
+    mix = np.zeros((len(specs), len(names)))
+    for i, s in enumerate(specs):
+        for n in s:
+            mix[i, names.index(n)] += 1.0 / len(s)
+    return mix
+
+
+def _unit(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    n = v.norm(dim=-1, keepdim=True)
+    return v / n.clamp(min=1e-9), n[..., 0]
+
+
+def _rotvec_to_matrix(r: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula, smooth at 0 (B, 3) -> (B, 3, 3)."""
+    theta2 = (r * r).sum(-1, keepdim=True)
+    theta = torch.sqrt(theta2 + 1e-24)
+    small = theta2 < 1e-8
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp(min=1e-24))
+    k = torch.zeros(r.shape[0], 3, 3, dtype=r.dtype, device=r.device)
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
+    eye = torch.eye(3, dtype=r.dtype, device=r.device)
+    return eye + a[..., None] * k + b[..., None] * (k @ k)
+
+
+def _matrix_to_rotvec(m: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) -> (B, 3) axis-angle, re-orthonormalised first (float32 products drift)."""
+    from scipy.spatial.transform import Rotation
+
+    u, _, vt = np.linalg.svd(m.double().numpy())
+    return torch.as_tensor(Rotation.from_matrix(u @ vt).as_rotvec(), dtype=m.dtype)
+
+
+def _blocks(n: int, size: int) -> list[slice]:
+    return [slice(i, min(i + size, n)) for i in range(0, n, size)]
+
+
+def _kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """Rotations R (B, 3, 3) minimising sum_i w_i |R src_i - dst_b,i|^2 for unit directions."""
+    m = torch.einsum("i,bic,id->bcd", w, dst, src)  # sum w dst src^T
+    u, _, vt = torch.linalg.svd(m)
+    d = torch.sign(torch.linalg.det(u @ vt))
+    fix = torch.ones_like(u[:, 0])
+    fix[:, 2] = d
+    return u @ torch.diag_embed(fix) @ vt
+
+
+# ------------------------------------------------------------------------------------------------
+# The solve
+
+
+@dataclass
+class Retargeted:
+    """A retargeted clip (mean BLSM body) and its per-frame residuals.
+
+    Attributes:
+        pose: (T, 47) unconstrained atom values x of Eq. 6.
+        angles: (T, 47) the atom angles, radians.
+        global_orient: (T, 3) axis-angle root rotation.
+        transl: (T, 3) translation in metres (``BLSM(transl=...)``; see the module docstring).
+        dir_err_mean_deg, dir_err_max_deg: (T,) segment direction error over ``segments``.
+        mpjpe_mm: (T,) MPJPE against the source chain rebuilt with BLSM segment lengths.
+        leg_ratio: BLSM mean leg length / source leg length.
+        segment_labels: the residual segments, in order.
+        segment_err_deg: (T, S) per-segment direction error.
+    """
+
+    pose: np.ndarray
+    angles: np.ndarray
+    global_orient: np.ndarray
+    transl: np.ndarray
+    dir_err_mean_deg: np.ndarray
+    dir_err_max_deg: np.ndarray
+    mpjpe_mm: np.ndarray
+    leg_ratio: float
+    segment_labels: list[str]
+    segment_err_deg: np.ndarray
+    source_points: np.ndarray  # (T, S + 1, 3) rescaled source chain (root first), metres
+
+
+def retarget(
+    motion: BvhMotion,
+    model: Any,
+    skeleton_map: SkeletonMap | None = None,
+    *,
+    block: int = 512,
+    first_iters: int = 300,
+    sweeps: int = 1,
+    hops: int = 8,
+    iters: int = 100,
+    lr: float = 0.05,
+    ridge: float = 1e-4,
+    progress: Any = None,
+) -> Retargeted:
+    """Retarget a BVH clip onto the model's mean body (see the module docstring).
+
+    Args:
+        motion: the clip (:func:`blsm.mocap.bvh.read_bvh`), already at the wanted frame rate.
+        model: a :class:`blsm.BLSM` (float32 or float64, CPU).
+        skeleton_map: the mapping table; None picks one with :func:`select_map`.
+        block: frames solved together (memory bound; frames are independent problems).
+        first_iters: Adam iterations of the first solve, every frame starting at rest.
+        sweeps: rounds of warm starts from neighbouring frames, each followed by ``iters``
+            iterations; ``hops`` is how many frames a better solution may travel per round.
+        lr: Adam step size (cosine-decayed to 5 % within each solve).
+        ridge: weight lambda of the ridge on the angles (radians^2).
+        progress: optional callable ``progress(frames_done)``.
+
+    Returns:
+        :class:`Retargeted`.
+    """
+    smap = skeleton_map if skeleton_map is not None else select_map(motion)
+    dtype = model.template.dtype
+    names = motion.skeleton.names
+    missing = [j for j in smap.source_joints() if j not in names]
+    if missing:
+        raise BvhError(
+            f"{motion.path}:{motion.skeleton.lines[0]}: no joint {missing[0]!r} required by "
+            f"mapping table {smap.name!r}"
+        )
+    _, src_pos = motion.global_transforms()  # (T, Js, 3) metres
+    n_frames = src_pos.shape[0]
+
+    pairs = list(smap.segments) + list(smap.twist)
+    n_seg = len(smap.segments)
+    blsm_specs = [p.blsm_from for p in pairs] + [p.blsm_to for p in pairs]
+    points = _BlsmPoints(model, blsm_specs)
+    n_pair = len(pairs)
+    weights = torch.tensor([p.weight for p in pairs], dtype=dtype)
+
+    smix = _source_mix(names, [p.source_from for p in pairs] + [p.source_to for p in pairs])
+    sp = np.einsum("pj,tjc->tpc", smix, src_pos)
+    src_dir_np = sp[:, n_pair:] - sp[:, :n_pair]
+    src_len = np.linalg.norm(src_dir_np, axis=-1)
+    if (src_len < 1e-6).any():
+        t, i = np.argwhere(src_len < 1e-6)[0]
+        raise BvhError(
+            f"{motion.path}:{motion.first_frame_line + int(t)}: source points of {pairs[i].label} "
+            f"coincide in frame {t + 1}; the mapping table {smap.name!r} does not fit this skeleton"
+        )
+    src_dir = torch.as_tensor(src_dir_np / src_len[..., None], dtype=dtype)
+
+    limits = model.dof_limits
+    scales = local_scales(model.bone_mean[None], model.parents_t)
+    heads, frames, parents = model.heads, model.frames, model.parents
+    root_j = model.bone_names.index(smap.root_blsm)
+    if root_j != 0:
+        raise ValueError(f"{smap.path}: root.blsm must be the model's root bone {model.bone_names[0]!r}")
+
+    def pose_points(x: torch.Tensor, g_rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        theta = angles_from_unconstrained(x, limits)
+        rot = joint_rotations(theta, model.dof_slots, model.dof_axis, model.dof_sign)
+        lin, off, joints = forward_kinematics(
+            rot, scales.expand(x.shape[0], -1), heads, frames, parents, g_rot
+        )
+        return points(lin, off, joints), theta
+
+    # Rest directions of the BLSM points, for the Kabsch initialisation of the root rotation.
+    x_rest = unconstrained_from_angles(torch.zeros(1, len(limits), dtype=dtype), limits)
+    rest_pts, _ = pose_points(x_rest, torch.eye(3, dtype=dtype)[None])
+    rest_dir, _ = _unit(rest_pts[0, n_pair:] - rest_pts[0, :n_pair])
+    orient_w = torch.tensor([1.0 if p.label in smap.orient else 0.0 for p in pairs], dtype=dtype)
+    r0_all = _kabsch(rest_dir, src_dir, orient_w)  # (T, 3, 3)
+
+    def frame_loss(x: torch.Tensor, g_rot: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        pts, theta = pose_points(x, g_rot)
+        u, _ = _unit(pts[:, n_pair:] - pts[:, :n_pair])
+        return (1 - (u * target).sum(-1)) @ weights + ridge * (theta**2).sum(-1)
+
+    def solve(x0: torch.Tensor, r0: torch.Tensor, sl: slice, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
+        x = x0.clone().requires_grad_(True)
+        r = r0.clone().requires_grad_(True)
+        base, target = r0_all[sl], src_dir[sl]
+        opt = torch.optim.Adam([x, r], lr=lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=lr * 0.05)
+        for _ in range(steps):
+            opt.zero_grad(set_to_none=True)
+            frame_loss(x, base @ _rotvec_to_matrix(r), target).sum().backward()
+            opt.step()
+            sched.step()
+        return x.detach(), r.detach()
+
+    def losses(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            return torch.cat(
+                [
+                    frame_loss(x[s], r0_all[s] @ _rotvec_to_matrix(r[s]), src_dir[s])
+                    for s in _blocks(n_frames, block)
+                ]
+            )
+
+    # 1. Every frame from the rest pose, in blocks of frames solved together.
+    x_all = x_rest.expand(n_frames, -1).clone()
+    r_all = torch.zeros(n_frames, 3, dtype=dtype)
+    for s in _blocks(n_frames, block):
+        x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, first_iters)
+        if progress is not None:
+            progress(0.5 * (s.stop - s.start) / max(1, sweeps) if sweeps else s.stop - s.start)
+    # 2. Warm starts from the neighbouring frames: a frame takes its neighbour's pose where that
+    #    fits it better (repeated, so a good solution travels along the clip), then all refine.
+    for sweep in range(sweeps):
+        cur = losses(x_all, r_all)
+        for _ in range(hops):
+            for shift in (1, -1):
+                cand = torch.roll(x_all, shift, 0)
+                lc = losses(cand, r_all)
+                lc[0 if shift == 1 else -1] = float("inf")
+                better = lc < cur - 1e-7
+                x_all[better], cur[better] = cand[better], lc[better]
+        for s in _blocks(n_frames, block):
+            x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, iters)
+            if progress is not None:
+                progress((s.stop - s.start) * (1 - 0.5 / sweeps) / sweeps)
+    pose = x_all
+    g_out = r0_all @ _rotvec_to_matrix(r_all)
+
+    with torch.no_grad():
+        pts, theta = pose_points(pose, g_out)
+    blsm_from, blsm_to = pts[:, :n_seg], pts[:, n_pair : n_pair + n_seg]
+    u, seg_len = _unit(blsm_to - blsm_from)
+    cos = (u * src_dir[:, :n_seg]).sum(-1).clamp(-1, 1)
+    seg_err = torch.rad2deg(torch.acos(cos)).numpy()
+
+    # MPJPE: rebuild the source chain from the BLSM root with the BLSM segment lengths.
+    chain = {smap.root_blsm: blsm_from[:, 0]}  # load_map checked: segment 0 starts at the root
+    for i, s in enumerate(smap.segments):
+        chain[s.blsm_to] = chain[s.blsm_from] + seg_len[:, i, None] * src_dir[:, i]
+    rebuilt = torch.stack([chain[s.blsm_to] for s in smap.segments], 1)
+    mpjpe = (rebuilt - blsm_to).norm(dim=-1).mean(-1) * 1000.0
+    source_points = torch.cat([blsm_from[:, :1], rebuilt], 1)
+
+    # Root translation: the source root scaled by the leg-length ratio; then the clip is moved
+    # vertically so that the mean body's lowest vertex is on the floor y = 0 in the 5th percentile
+    # of frames (robust to jumps and to source floors that are not at y = 0).
+    li = [names.index(n) for n in smap.leg_source]
+    src_leg = np.linalg.norm(np.diff(src_pos[:, li], axis=1), axis=-1).sum(1).mean()
+    bi = [model.bone_names.index(n) for n in smap.leg_blsm]
+    blsm_leg = float((heads[bi[1:]] - heads[bi[:-1]]).norm(dim=-1).sum())
+    ratio = blsm_leg / float(src_leg)
+    root_src = src_pos[:, names.index(smap.root_source)]
+    transl = ratio * root_src - heads[0].double().numpy()
+    lowest = []
+    with torch.no_grad():
+        for s in _blocks(n_frames, 256):
+            out = model(pose=pose[s], global_orient=_matrix_to_rotvec(g_out[s]))
+            lowest.append(out.vertices[..., 1].amin(-1).double().numpy())
+    low = np.concatenate(lowest) + transl[:, 1]
+    transl[:, 1] -= np.percentile(low, 5)
+
+    rotvec = _matrix_to_rotvec(g_out).double().numpy()
+    return Retargeted(
+        pose=pose.double().numpy(),
+        angles=theta.double().numpy(),
+        global_orient=rotvec,
+        transl=transl,
+        dir_err_mean_deg=seg_err.mean(1),
+        dir_err_max_deg=seg_err.max(1),
+        mpjpe_mm=mpjpe.double().numpy(),
+        leg_ratio=ratio,
+        segment_labels=[s.label for s in smap.segments],
+        segment_err_deg=seg_err,
+        source_points=source_points.double().numpy(),
+    )
+
