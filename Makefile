@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model atoms clean-venv
+.PHONY: demo test bench model atoms motions prior clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -25,6 +25,18 @@ model: $(STAMP)
 
 atoms: $(STAMP)
 	$(BIN)/blsm atoms --out out/atoms
+
+# Import the shared CMU clips (about 12 minutes on 2 cores), preview a walk, a dance and a jump.
+MOCAP ?= ../shared/mocap/cmu
+motions: $(STAMP)
+	$(BIN)/blsm mocap import $(MOCAP) --out out/motions --fps 30 --overwrite
+	$(BIN)/blsm mocap preview out/motions/007_01.npz --out out/motions/preview_walk_007_01.png
+	$(BIN)/blsm mocap preview out/motions/005_02.npz --out out/motions/preview_dance_005_02.png
+	$(BIN)/blsm mocap preview out/motions/002_04.npz --out out/motions/preview_jump_002_04.png
+
+# Refit the packaged pose prior from out/motions (two clips held out for the tests).
+prior: $(STAMP)
+	$(BIN)/blsm mocap fit-prior out/motions --out blsm/data/pose_prior_cmu.npz --exclude 007_12 005_20
 
 clean-venv:
 	rm -rf $(VENV)

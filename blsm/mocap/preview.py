@@ -4,8 +4,9 @@ Each column is one frame. The top row draws the source skeleton (every BVH bone,
 clip's leg-length ratio and placed like the body); the bottom row renders the retargeted mean BLSM
 body with Mitsuba with its skeleton drawn over it (left side blue, right side orange, as in the
 top row). Both rows of a
-column share one camera, which follows the body's root from a fixed direction (front-left, slightly
-above), so a walk walks and a jump leaves the floor line (grey).
+column share one camera, which follows the body from a fixed direction (the body's front in the
+first frame, turned by 30 degrees, slightly above), so a walk walks and a jump leaves the floor
+line (grey).
 """
 
 from __future__ import annotations
@@ -90,8 +91,12 @@ def render_preview(
     draw = ImageDraw.Draw(sheet)
     font = ImageFont.load_default()
     draw.text((4, 2), f"{clip.name}: source skeleton (top), BLSM body and skeleton (bottom)", fill="black", font=font)
-    az = np.radians(azimuth_deg)
-    view = np.array([np.sin(az), 0.25, np.cos(az)])
+    # View from the body's front at the clip's first frame, turned by azimuth_deg, slightly above.
+    from scipy.spatial.transform import Rotation
+
+    fwd = Rotation.from_rotvec(clip.global_orient[0]).apply([0.0, 0.0, 1.0])
+    yaw = np.arctan2(fwd[0], fwd[2]) + np.radians(azimuth_deg)
+    view = np.array([np.sin(yaw), 0.25, np.cos(yaw)])
     view /= np.linalg.norm(view)
     parents = motion.skeleton.parents
     for col, t in enumerate(idx):

@@ -60,7 +60,7 @@ class Pair:
     def label(self) -> str:
         def name(p: Any) -> str:
             if isinstance(p, dict):
-                return f"{p['bone']}{p['axis']}"
+                return p["label"]
             return p if isinstance(p, str) else "+".join(p)
 
         return f"{name(self.blsm_from)}->{name(self.blsm_to)}"
@@ -102,8 +102,21 @@ def _blsm_point(v: Any, where: str) -> Any:
     if isinstance(v, list) and v and all(isinstance(s, str) for s in v):
         return tuple(v)
     if isinstance(v, dict) and set(v) == {"bone", "axis"} and v["axis"] in _AXES:
-        return {"bone": str(v["bone"]), "axis": v["axis"]}
-    raise ValueError(f"{where}: a BLSM point is a name, a list of names or {{bone, axis}}, got {v!r}")
+        ax, sign = _AXES[v["axis"]]
+        off = [0.0, 0.0, 0.0]
+        off[ax] = sign * AXIS_POINT_DISTANCE
+        return {"bone": str(v["bone"]), "offset": tuple(off), "label": f"{v['bone']}{v['axis']}"}
+    if (
+        isinstance(v, dict)
+        and set(v) == {"bone", "offset"}
+        and isinstance(v["offset"], list)
+        and len(v["offset"]) == 3
+        and all(isinstance(c, (int, float)) for c in v["offset"])
+    ):
+        return {"bone": str(v["bone"]), "offset": tuple(float(c) for c in v["offset"]), "label": f"{v['bone']}{v['offset']}"}
+    raise ValueError(
+        f"{where}: a BLSM point is a name, a list of names, {{bone, axis}} or {{bone, offset}}, got {v!r}"
+    )
 
 
 def load_map(path: str | Path) -> SkeletonMap:
@@ -261,9 +274,9 @@ class _BlsmPoints:
                 if s["bone"] not in bone_names:
                     raise ValueError(f"unknown bone {s['bone']!r} in an axis point")
                 j = bone_names.index(s["bone"])
-                ax, sign = _AXES[s["axis"]]
-                p = model.heads[j] + sign * AXIS_POINT_DISTANCE * model.frames[j][:, ax]
-                rows.append([add(f"{s['bone']}{s['axis']}", ("axis", (j, p)))])
+                off = torch.tensor(s["offset"], dtype=model.heads.dtype)
+                p = model.heads[j] + model.frames[j] @ off
+                rows.append([add(s["label"], ("axis", (j, p)))])
         self.base = base
         mix = torch.zeros(len(specs), len(base), dtype=model.template.dtype)
         for i, r in enumerate(rows):
