@@ -165,7 +165,9 @@ def cmd_import(args: argparse.Namespace) -> int:
     for f in files:
         with open(f, "rb") as fh:  # the file's own rate, for the record
             head = fh.read(1 << 16).decode("utf-8", "replace")
-        ft = next((ln.split(":", 1)[1] for ln in head.splitlines() if ln.strip().startswith("Frame Time:")), None)
+        ft = next(
+            (ln.split(":", 1)[1] for ln in head.splitlines() if ln.strip().startswith("Frame Time:")), None
+        )
         jobs.append(
             {
                 "path": str(f),
@@ -177,7 +179,9 @@ def cmd_import(args: argparse.Namespace) -> int:
             }
         )
     ctx = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(args.workers, mp_context=ctx, initializer=_init_worker, initargs=(args.model,)) as pool:
+    with ProcessPoolExecutor(
+        args.workers, mp_context=ctx, initializer=_init_worker, initargs=(args.model,)
+    ) as pool:
         # Phase 1: every file parses and has a mapping table, or nothing is written.
         checks = list(pool.map(_check, jobs))
         errors = [c for c in checks if isinstance(c, str)]
@@ -275,8 +279,15 @@ def _print_summary(rows: list[dict[str, Any]]) -> None:
     frames = sum(r["frames"] for r in rows)
     print()
     print(f"{'clips':>28s}: {len(rows)} ({frames} frames)")
-    print(f"{'median per-clip MPJPE':>28s}: {np.median(med):.1f} mm  (per-clip medians {med.min():.1f} .. {med.max():.1f} mm; target <= 40)")
-    print(f"{'bone-direction error':>28s}: mean {np.mean(dirs):.1f} deg, median of clip means {np.median(dirs):.1f} deg, worst frame {max(r['dir_err_max_deg'] for r in rows):.1f} deg")
+    worst = max(r["dir_err_max_deg"] for r in rows)
+    print(
+        f"{'median per-clip MPJPE':>28s}: {np.median(med):.1f} mm  "
+        f"(per-clip medians {med.min():.1f} .. {med.max():.1f} mm; target <= 40)"
+    )
+    print(
+        f"{'bone-direction error':>28s}: mean {np.mean(dirs):.1f} deg, "
+        f"median of clip means {np.median(dirs):.1f} deg, worst frame {worst:.1f} deg"
+    )
 
 
 def _write_limit_stats(angles: np.ndarray, model: Any, png: Path) -> None:
@@ -286,7 +297,7 @@ def _write_limit_stats(angles: np.ndarray, model: Any, png: Path) -> None:
     plot_limit_hits(hits, png)
     rows = [
         {"atom": n, "at_min": float(lo), "at_max": float(hi)}
-        for n, lo, hi in zip(hits.names, hits.lower, hits.upper)
+        for n, lo, hi in zip(hits.names, hits.lower, hits.upper, strict=True)
     ]
     _write_csv(png.with_suffix(".csv"), rows)
     flagged = hits.flagged()
@@ -365,5 +376,7 @@ def cmd_fit_prior(args: argparse.Namespace) -> int:
         },
     )
     prior.save(args.out)
-    print(f"fitted {args.k} components on {x.shape[0]} frames of {len(used)} clips in {time.perf_counter() - t0:.1f} s -> {args.out}")
+    dt = time.perf_counter() - t0
+    print(f"fitted {args.k} components on {x.shape[0]} frames of {len(used)} clips in {dt:.1f} s")
+    print(f"wrote {args.out}")
     return 0

@@ -58,9 +58,7 @@ def render_preview(
 
     src_path = Path(bvh) if bvh is not None else Path(clip.meta.get("source", ""))
     if not src_path.is_file():
-        raise ValueError(
-            f"{clip.path}: source BVH {str(src_path)!r} not found; pass it with --bvh"
-        )
+        raise ValueError(f"{clip.path}: source BVH {str(src_path)!r} not found; pass it with --bvh")
     motion = read_bvh(src_path, units=clip.meta.get("units", "auto"), fps=clip.fps)
     offset = int(clip.meta.get("first_frame", 0))
     _, src_pos = motion.global_transforms()
@@ -90,7 +88,12 @@ def render_preview(
     sheet = Image.new("RGB", (w * len(idx), 2 * h + 36), "white")
     draw = ImageDraw.Draw(sheet)
     font = ImageFont.load_default()
-    draw.text((4, 2), f"{clip.name}: source skeleton (top), BLSM body and skeleton (bottom)", fill="black", font=font)
+    draw.text(
+        (4, 2),
+        f"{clip.name}: source skeleton (top), BLSM body and skeleton (bottom)",
+        fill="black",
+        font=font,
+    )
     # View from the body's front at the clip's first frame, turned by azimuth_deg, slightly above.
     from scipy.spatial.transform import Rotation
 
@@ -100,7 +103,13 @@ def render_preview(
     view /= np.linalg.norm(view)
     parents = motion.skeleton.parents
     for col, t in enumerate(idx):
-        target = np.array([verts[col, :, 0].mean(), 0.5 * (verts[col, :, 1].max() + verts[col, :, 1].min()), verts[col, :, 2].mean()])
+        target = np.array(
+            [
+                verts[col, :, 0].mean(),
+                0.5 * (verts[col, :, 1].max() + verts[col, :, 1].min()),
+                verts[col, :, 2].mean(),
+            ]
+        )
         cam = look_at_camera(target + 3.6 * view, target, fov_y_deg=32.0, width=w, height=h)
         body = render_meshes([(verts[col], faces)], cam, spp=spp)
         y0 = 20

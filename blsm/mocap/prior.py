@@ -42,7 +42,6 @@ from typing import Any
 import numpy as np
 import scipy.linalg
 import torch
-from scipy.linalg.blas import dsyrk
 from torch import nn
 
 from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
@@ -55,7 +54,8 @@ WEIGHT_SUM_TOL = 1e-5
 _ARRAYS = ("weights", "means", "scale_tril", "limits")
 _LOG_2PI = math.log(2.0 * math.pi)
 _LLOYD_STEPS = 10  # k-means refinement of the k-means++ seeds before EM
-_CHUNK = 4096  # frames per block in the E-step, bounding its (C, K, D) temporary
+_TINY = 1e-300  # responsibilities below this are set to 0
+_CHUNK = 512  # frames per block in EM, keeping the (C, K, D) temporaries in cache
 
 
 def _validate(arrays: dict[str, np.ndarray], dof_names: Sequence[str], where: str) -> None:
@@ -362,24 +362,30 @@ def _kmeans_init(x: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def _e_step(
-    x: np.ndarray, weights: np.ndarray, means: np.ndarray, chols: np.ndarray
+    x1: np.ndarray, weights: np.ndarray, means: np.ndarray, chols: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Responsibilities (N, K) and per-sample log-likelihoods (N,), via a stable log-sum-exp."""
-    n, d = x.shape
+    """Responsibilities (N, K) and per-frame log-likelihoods (N,), via a stable log-sum-exp.
+
+    ``x1`` is the (N, D + 1) data with a trailing column of ones, which folds the mean into the
+    whitening product: ``[x, 1] @ [[L^-T], [-mu L^-T]] = (x - mu) L^-T``.
+    """
+    n, d = x1.shape[0], x1.shape[1] - 1
     k = weights.shape[0]
     eye = np.eye(d)
-    # Whitening y = L^-1 (x - mu) for all components at once: one (N, D) @ (D, K*D) product per chunk.
     prec_t = np.stack([scipy.linalg.solve_triangular(c, eye, lower=True).T for c in chols])  # (K, D, D)
-    prec_flat = prec_t.transpose(1, 0, 2).reshape(d, k * d)  # (D, K*D)
     shift = np.einsum("kd,kde->ke", means, prec_t)  # (K, D)
+    # All components in one (C, D + 1) @ (D + 1, K * D) product per block of frames.
+    whiten = np.vstack([prec_t.transpose(1, 0, 2).reshape(d, k * d), -shift.reshape(1, k * d)])
     const = np.log(weights) - np.log(np.diagonal(chols, axis1=1, axis2=2)).sum(1) - 0.5 * d * _LOG_2PI
     log_comp = np.empty((n, k))
     for s in range(0, n, _CHUNK):
-        y = (x[s : s + _CHUNK] @ prec_flat).reshape(-1, k, d) - shift  # (C, K, D)
+        y = (x1[s : s + _CHUNK] @ whiten).reshape(-1, k, d)  # (C, K, D)
         log_comp[s : s + _CHUNK] = const - 0.5 * np.einsum("ckd,ckd->ck", y, y)
     top = log_comp.max(1, keepdims=True)  # (N, 1)
     ll = top[:, 0] + np.log(np.exp(log_comp - top).sum(1))  # (N,)
-    return np.exp(log_comp - ll[:, None]), ll
+    resp = np.exp(log_comp - ll[:, None])  # (N, K)
+    resp[resp < _TINY] = 0.0  # flush denormals, which slow every later product by orders of magnitude
+    return resp, ll
 
 
 def _m_step(
@@ -390,22 +396,23 @@ def _m_step(
     k = resp.shape[1]
     nk = resp.sum(0)  # (K,)
     empty = nk < 1.0  # less than one frame's worth of responsibility
-    means = resp.T @ x / np.maximum(nk, 1e-300)[:, None]  # (K, D)
-    chols = np.empty((k, d, d))
-    reg_eye = reg * np.eye(d)
-    for j in range(k):
-        if empty[j]:
-            # Restart at a random frame with the data's spread rather than dropping it, so k is kept.
-            means[j] = x[rng.integers(n)]
-            cov = global_cov
-        else:
-            a = np.sqrt(resp[:, j, None]) * (x - means[j])  # (N, D)
-            # syrk computes the lower triangle of a^T a at half the cost of a full product.
-            cov = dsyrk(1.0 / nk[j], a.T, lower=1)
-            cov = np.tril(cov) + np.tril(cov, -1).T
-        chols[j] = np.linalg.cholesky(cov + reg_eye)
+    safe_nk = np.maximum(nk, 1.0)[:, None]  # empty components are overwritten below
+    means = resp.T @ x / safe_nk  # (K, D)
+    # Uncentred second moments, all components in one product per block; with |x| <= X_CLIP the
+    # cancellation in E[x x^T] - mu mu^T is far below reg.
+    second = np.zeros((d, k * d))
+    for s in range(0, n, _CHUNK):
+        xs = x[s : s + _CHUNK]  # (C, D)
+        second += xs.T @ (resp[s : s + _CHUNK, :, None] * xs[:, None, :]).reshape(len(xs), k * d)
+    covs = second.reshape(d, k, d).transpose(1, 0, 2) / safe_nk[:, :, None]  # (K, D, D)
+    covs -= np.einsum("ki,kj->kij", means, means)
+    covs = 0.5 * (covs + covs.transpose(0, 2, 1)) + reg * np.eye(d)
+    for j in np.flatnonzero(empty):
+        # Restart at a random frame with the data's spread rather than dropping it, so k is kept.
+        means[j] = x[rng.integers(n)]
+        covs[j] = global_cov + reg * np.eye(d)
     weights = np.where(empty, 1.0 / k, nk / n)
-    return weights / weights.sum(), means, chols, int(empty.sum())
+    return weights / weights.sum(), means, np.linalg.cholesky(covs), int(empty.sum())
 
 
 def fit_pose_prior(
@@ -434,7 +441,7 @@ def fit_pose_prior(
         seed: seed of the initialisation and of component restarts.
         iters: maximum number of EM iterations, >= 1.
         tol: convergence threshold on the mean log-likelihood (nats per frame).
-        reg: covariance regulariser, >= 0.
+        reg: covariance regulariser, > 0 (also keeps components on repeated frames non-singular).
         meta: JSON-serialisable provenance stored in the prior; fit settings are added under ``"fit"``.
 
     Returns:
@@ -454,14 +461,15 @@ def fit_pose_prior(
         raise ValueError(f"k must be a positive int, got {k!r}")
     if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
         raise ValueError(f"iters must be a positive int, got {iters!r}")
-    if not reg >= 0.0:
-        raise ValueError(f"reg must be >= 0, got {reg!r}")
+    if not reg > 0.0:
+        raise ValueError(f"reg must be > 0, got {reg!r}")
     n = x.shape[0]
     if n < 10 * k:
         raise ValueError(f"x has {n} frames; fitting k = {k} components needs at least {10 * k}")
     if not np.isfinite(x).all():
         raise ValueError("x has non-finite values (NaN or inf); clip angles on a limit before atanh")
     x = np.clip(x, -X_CLIP, X_CLIP)
+    x1 = np.hstack([x, np.ones((n, 1))])  # (N, D + 1), see _e_step
 
     rng = np.random.default_rng(seed)
     global_cov = np.cov(x, rowvar=False).reshape(d, d)
@@ -475,7 +483,7 @@ def fit_pose_prior(
     n_iter = 0
     while n_iter < iters:
         n_iter += 1
-        resp, ll = _e_step(x, weights, means, chols)
+        resp, ll = _e_step(x1, weights, means, chols)
         mean_ll = float(ll.mean())
         if mean_ll - prev < tol:
             converged = True
@@ -486,7 +494,7 @@ def fit_pose_prior(
             n_restarts += restarted
             prev = -np.inf  # a restart may lower the likelihood; do not take that for convergence
     if not converged:
-        mean_ll = float(_e_step(x, weights, means, chols)[1].mean())
+        mean_ll = float(_e_step(x1, weights, means, chols)[1].mean())
 
     fit_info = {
         "k": k,

@@ -113,7 +113,11 @@ def _blsm_point(v: Any, where: str) -> Any:
         and len(v["offset"]) == 3
         and all(isinstance(c, (int, float)) for c in v["offset"])
     ):
-        return {"bone": str(v["bone"]), "offset": tuple(float(c) for c in v["offset"]), "label": f"{v['bone']}{v['offset']}"}
+        return {
+            "bone": str(v["bone"]),
+            "offset": tuple(float(c) for c in v["offset"]),
+            "label": f"{v['bone']}{v['offset']}",
+        }
     raise ValueError(
         f"{where}: a BLSM point is a name, a list of names, {{bone, axis}} or {{bone, offset}}, got {v!r}"
     )
@@ -164,7 +168,9 @@ def load_map(path: str | Path) -> SkeletonMap:
         if not (isinstance(s.blsm_from, str) and isinstance(s.blsm_to, str)):
             raise ValueError(f"{path}: segments[{i}]: chain points must be single names")
         if s.blsm_from not in seen:
-            raise ValueError(f"{path}: segments[{i}] starts at {s.blsm_from!r}, not yet reached from the root")
+            raise ValueError(
+                f"{path}: segments[{i}] starts at {s.blsm_from!r}, not yet reached from the root"
+            )
         if s.blsm_to in seen:
             raise ValueError(f"{path}: segments[{i}] reaches {s.blsm_to!r} a second time")
         seen.add(s.blsm_to)
@@ -177,8 +183,10 @@ def load_map(path: str | Path) -> SkeletonMap:
             f"(labels like 'pelvis->neck'), got {orient!r}"
         )
     leg = doc["leg"]
-    if not isinstance(leg, dict) or len(leg.get("blsm", [])) < 2 or len(leg.get("source", [])) != len(
-        leg.get("blsm", [])
+    if (
+        not isinstance(leg, dict)
+        or len(leg.get("blsm", [])) < 2
+        or len(leg.get("source", [])) != len(leg.get("blsm", []))
     ):
         raise ValueError(f"{path}: leg must list the same number (>= 2) of blsm and source joints")
     return SkeletonMap(
@@ -520,7 +528,7 @@ def retarget(
             progress(0.5 * (s.stop - s.start) / max(1, sweeps) if sweeps else s.stop - s.start)
     # 2. Warm starts from the neighbouring frames: a frame takes its neighbour's pose where that
     #    fits it better (repeated, so a good solution travels along the clip), then all refine.
-    for sweep in range(sweeps):
+    for _ in range(sweeps):
         cur = losses(x_all, r_all)
         for _ in range(hops):
             for shift in (1, -1):
@@ -583,4 +591,3 @@ def retarget(
         segment_err_deg=seg_err,
         source_points=source_points.double().numpy(),
     )
-

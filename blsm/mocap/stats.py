@@ -30,7 +30,7 @@ class LimitHits:
     def flagged(self, threshold: float = FLAG) -> list[tuple[str, str, float]]:
         """(atom, "min"|"max", fraction) for every limit hit in more than ``threshold``."""
         out = []
-        for n, lo, hi in zip(self.names, self.lower, self.upper):
+        for n, lo, hi in zip(self.names, self.lower, self.upper, strict=True):
             if lo > threshold:
                 out.append((n, "min", float(lo)))
             if hi > threshold:
@@ -81,7 +81,12 @@ def plot_limit_hits(hits: LimitHits, out_path: str | Path, threshold: float = FL
     def x_of(frac: float, side: int) -> float:
         return cx + side * half_w * min(frac, vmax) / vmax
 
-    d.text((pad, 6), title or f"Frames at a joint limit (within {hits.tol_deg:g} deg), {hits.frames} frames", fill="black", font=font)
+    d.text(
+        (pad, 6),
+        title or f"Frames at a joint limit (within {hits.tol_deg:g} deg), {hits.frames} frames",
+        fill="black",
+        font=font,
+    )
     d.text((label_w + pad, 24), "<- at min", fill=(40, 90, 200), font=font)
     d.text((cx + half_w - 60, 24), "at max ->", fill=(200, 80, 30), font=font)
     for side in (-1, 1):

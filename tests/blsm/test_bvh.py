@@ -71,7 +71,9 @@ def test_units_are_inferred_from_the_skeleton_size(tmp_path):
     tall = SMALL.replace("OFFSET 0 -45 0", "OFFSET 0 -90 0").replace("OFFSET 0 -40 5", "OFFSET 0 -85 5")
     cm = read_bvh(write(tmp_path, tall))
     assert cm.units == "cm" and cm.units_inferred
-    metres = tall.replace("OFFSET 0 -90 0", "OFFSET 0 -0.90 0").replace("OFFSET 0 -85 5", "OFFSET 0 -0.85 0.05")
+    metres = tall.replace("OFFSET 0 -90 0", "OFFSET 0 -0.90 0").replace(
+        "OFFSET 0 -85 5", "OFFSET 0 -0.85 0.05"
+    )
     metres = metres.replace("OFFSET 0 0 15", "OFFSET 0 0 0.15")
     m = read_bvh(write(tmp_path, metres, "m.bvh"))
     assert m.units == "m"
@@ -106,8 +108,18 @@ def test_resample_halves_the_rate_with_slerp(tmp_path):
         (lambda s: s.replace("10 90 10 0 0 0 0 0 0 0 0 0", "10 90 10 0 0 0 0 0 0"), 25, "has 9 values"),
         (lambda s: s.replace("10 90 10 0 0 0 0 0 0 0 0 0", "10 90 nan 0 0 0 0 0 0 0 0 0"), 25, "non-finite"),
         (lambda s: s.replace("10 90 10 0 0 0 0 0 0 0 0 0", "10 90 1O 0 0 0 0 0 0 0 0 0"), 25, "not a number"),
-        (lambda s: s.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 3 Xrotation Yrotation"), 9, "CHANNELS says 3"),
-        (lambda s: s.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 3 Xrotation Yrotation Wrotation"), 9, "unknown channel"),
+        (
+            lambda s: s.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 3 Xrotation Yrotation"),
+            9,
+            "CHANNELS says 3",
+        ),
+        (
+            lambda s: s.replace(
+                "CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 3 Xrotation Yrotation Wrotation"
+            ),
+            9,
+            "unknown channel",
+        ),
         (lambda s: s.replace("JOINT Ankle", "JIONT Ankle"), 10, "unknown keyword"),
         (lambda s: s.replace("    OFFSET 0 -40 5\n", ""), 17, "has no OFFSET"),
         (lambda s: s.replace("Frame Time: 0.0333333", "Frame Time: 0"), 23, "must be positive"),
@@ -144,6 +156,8 @@ def test_shared_cmu_clip_reads(shared_mocap):
     head = pos[:, names.index("CC_Base_Head"), 1]
     foot = pos[:, names.index("CC_Base_L_Foot"), 1]
     assert 1.3 < float(np.median(head - foot)) < 1.8
-    thigh = np.linalg.norm(pos[:, names.index("CC_Base_L_Calf")] - pos[:, names.index("CC_Base_L_Thigh")], axis=-1)
+    thigh = np.linalg.norm(
+        pos[:, names.index("CC_Base_L_Calf")] - pos[:, names.index("CC_Base_L_Thigh")], axis=-1
+    )
     assert 0.4 < thigh.mean() < 0.55 and thigh.std() < 1e-6
     assert math.isclose(resample(m, 30).num_frames, 86)

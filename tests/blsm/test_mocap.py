@@ -24,7 +24,9 @@ def library(tmp_path_factory, shared_mocap):
     for name in ("002_01", "002_04"):
         shutil.copy(shared_mocap / f"{name}.bvh", src / f"{name}.bvh")
     out = tmp_path_factory.mktemp("lib") / "motions"
-    rc = main(["mocap", "import", str(src), "--out", str(out), "--fps", "10", "--iters", "80", "--workers", "1"])
+    rc = main(
+        ["mocap", "import", str(src), "--out", str(out), "--fps", "10", "--iters", "80", "--workers", "1"]
+    )
     assert rc == 0
     return src, out
 
@@ -89,7 +91,9 @@ def test_retargeted_body_follows_the_source(library, model):
 def test_angles_stay_inside_the_limits(library, model):
     _, out = library
     for p in out.glob("*.npz"):
-        ang = angles_from_unconstrained(torch.as_tensor(load_clip(p).pose).double(), model.dof_limits.double())
+        ang = angles_from_unconstrained(
+            torch.as_tensor(load_clip(p).pose).double(), model.dof_limits.double()
+        )
         lo, hi = model.dof_limits.double().T
         assert bool(((ang >= lo) & (ang <= hi)).all())
 
