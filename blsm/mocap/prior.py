@@ -320,8 +320,7 @@ def uniform_sample(
         generator: random generator on the CPU / ``limits``' device (default: torch's global one).
 
     Returns:
-        (n, D) unconstrained values ``x`` (inverse of Eq. 6 of uniform angles), in ``limits``' dtype
-        (float64 for a numpy array).
+        (n, D) unconstrained values ``x`` (inverse of Eq. 6 of uniform angles), in ``limits``' dtype.
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
         raise ValueError(f"n must be a non-negative int, got {n!r}")
@@ -428,10 +427,10 @@ def fit_pose_prior(
 ) -> PosePrior:
     """Fit a full-covariance Gaussian mixture to unconstrained pose values by EM (float64 numpy).
 
-    Values are first clipped to ``|x| <= X_CLIP``. Initialisation is k-means++ (seeded) refined by a
-    few Lloyd steps; EM then runs until the mean log-likelihood per frame improves by less than
-    ``tol`` or ``iters`` iterations. ``reg * I`` is added to every covariance; a component with less
-    than one frame's worth of responsibility is restarted at a random frame.
+    Values are first clipped to ``|x| <= X_CLIP`` (``+-inf`` included). Initialisation is k-means++
+    (seeded) refined by a few Lloyd steps; EM then runs until the mean log-likelihood per frame
+    improves by less than ``tol`` or ``iters`` iterations. ``reg * I`` is added to every covariance;
+    a component with less than one frame's worth of responsibility is restarted at a random frame.
 
     Args:
         x: (N, D) unconstrained pose values (e.g. :func:`unconstrained_from_angles` of mocap angles).
@@ -448,7 +447,7 @@ def fit_pose_prior(
         The fitted :class:`PosePrior` (float64 buffers).
 
     Raises:
-        ValueError: for input of the wrong shape, non-finite values, too few frames or bad settings.
+        ValueError: for input of the wrong shape, NaN values, too few frames or bad settings.
     """
     x = np.asarray(x, dtype=np.float64)
     lim = _as_float64(limits)
@@ -466,9 +465,9 @@ def fit_pose_prior(
     n = x.shape[0]
     if n < 10 * k:
         raise ValueError(f"x has {n} frames; fitting k = {k} components needs at least {10 * k}")
-    if not np.isfinite(x).all():
-        raise ValueError("x has non-finite values (NaN or inf); clip angles on a limit before atanh")
-    x = np.clip(x, -X_CLIP, X_CLIP)
+    if np.isnan(x).any():
+        raise ValueError("x has NaN values")
+    x = np.clip(x, -X_CLIP, X_CLIP)  # also maps the +-inf of angles exactly on a limit to +-X_CLIP
     x1 = np.hstack([x, np.ones((n, 1))])  # (N, D + 1), see _e_step
 
     rng = np.random.default_rng(seed)

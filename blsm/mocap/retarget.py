@@ -12,11 +12,14 @@ spine joints, the twist of a straight limb). Because the angles go through Eq. 6
 construction: what the skeleton cannot do shows up in the residuals instead of in the pose.
 
 The mapping from source points to BLSM points is a table per source skeleton
-(``blsm/data/mocap_maps/*.yaml``, documented in ``cc_base.yaml``). The solve is batched over a chunk
-of frames with Adam, warm-started from the last solved frame; the global rotation starts at the
-Kabsch alignment of the pelvis directions and is refined with the rest. The root translation is the
-source root position scaled by the leg-length ratio (BLSM mean leg / source leg), with the source
-floor (y = 0) moved to the BLSM mean body's sole height.
+(``blsm/data/mocap_maps/*.yaml``, documented in ``cc_base.yaml``). The solve is batched with Adam:
+every frame first starts at the rest pose, its global rotation at the Kabsch alignment of the
+pelvis directions; then each frame is warm-started from its neighbouring frames (it takes the
+previous or next frame's pose wherever that fits it better, repeated ``hops`` times so a good
+solution travels along the clip) and all frames are refined. The root translation is the source
+root position scaled by the leg-length ratio (BLSM mean leg / source leg); the clip is then moved
+vertically so that the mean body's lowest vertex is on the floor y = 0 in the 5th percentile of
+frames.
 
 Residuals per frame: mean and max angle between source and BLSM segment directions (degrees), and
 MPJPE (mm) between the BLSM points and the source chain rebuilt with the BLSM segment lengths from
@@ -420,7 +423,6 @@ def retarget(
     iters: int = 100,
     lr: float = 0.05,
     ridge: float = 1e-4,
-    progress: Any = None,
 ) -> Retargeted:
     """Retarget a BVH clip onto the model's mean body (see the module docstring).
 
@@ -434,7 +436,6 @@ def retarget(
             iterations; ``hops`` is how many frames a better solution may travel per round.
         lr: Adam step size (cosine-decayed to 5 % within each solve).
         ridge: weight lambda of the ridge on the angles (radians^2).
-        progress: optional callable ``progress(frames_done)``.
 
     Returns:
         :class:`Retargeted`.
@@ -524,8 +525,6 @@ def retarget(
     r_all = torch.zeros(n_frames, 3, dtype=dtype)
     for s in _blocks(n_frames, block):
         x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, first_iters)
-        if progress is not None:
-            progress(0.5 * (s.stop - s.start) / max(1, sweeps) if sweeps else s.stop - s.start)
     # 2. Warm starts from the neighbouring frames: a frame takes its neighbour's pose where that
     #    fits it better (repeated, so a good solution travels along the clip), then all refine.
     for _ in range(sweeps):
@@ -539,8 +538,6 @@ def retarget(
                 x_all[better], cur[better] = cand[better], lc[better]
         for s in _blocks(n_frames, block):
             x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, iters)
-            if progress is not None:
-                progress((s.stop - s.start) * (1 - 0.5 / sweeps) / sweeps)
     pose = x_all
     g_out = r0_all @ _rotvec_to_matrix(r_all)
 
