@@ -1,0 +1,243 @@
+"""WebDataset-compatible tar shards, a manifest, per-sample seeding, and resumable runs.
+
+A dataset folder holds ``shard-000000.tar``, ``shard-000001.tar``, ... and ``manifest.json``.
+Shard ``s`` holds the samples with indices ``s * shard_size ... (s + 1) * shard_size - 1`` (the last
+one fewer). A sample is a group of tar members sharing one key, ``f"{index:09d}"``, each member
+named ``<key>.<field>`` (``000000042.rgb.png``, ``000000042.json``, ...), the WebDataset layout.
+
+Guarantees:
+
+- A shard appears only when complete: it is written to ``.shard-XXXXXX.tar.tmp`` and renamed.
+- Shards are byte-reproducible: members are written in sorted order with fixed metadata (mtime 0,
+  uid/gid 0, mode 0644), and a sample's randomness comes only from :func:`sample_rng` with
+  ``(seed, index)``. The same config and seed therefore give the same bytes, and a resumed run
+  gives the same dataset as an uninterrupted one.
+- The manifest (written atomically after every shard) records the config, the seed, package
+  versions, counts and the SHA-256 of every finished shard. :func:`ShardWriter.resume` keeps the
+  shards whose checksum matches and regenerates the rest.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tarfile
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+MANIFEST = "manifest.json"
+FORMAT = "blsm-synth-shards"
+VERSION = 1
+
+
+def sample_key(index: int) -> str:
+    """The WebDataset key of sample ``index``."""
+    return f"{index:09d}"
+
+
+def shard_name(shard: int) -> str:
+    return f"shard-{shard:06d}.tar"
+
+
+def sample_rng(seed: int, index: int) -> np.random.Generator:
+    """The random generator of one sample: a function of ``(seed, index)`` only.
+
+    Independent streams for different indices (``numpy.random.SeedSequence`` spawning), so samples
+    can be made in any order, by any worker, and a resumed run repeats them exactly.
+    """
+    if seed < 0 or index < 0:
+        raise ValueError(f"seed and index must be non-negative, got {seed}, {index}")
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(index)])))
+
+
+def sha256_file(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, path)
+
+
+def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
+    info = tarfile.TarInfo(name)
+    info.size = len(data)
+    info.mtime = 0
+    info.mode = 0o644
+    info.uid = info.gid = 0
+    info.uname = info.gname = ""
+    tar.addfile(info, io.BytesIO(data))
+
+
+def write_shard(path: str | Path, samples: Iterable[tuple[int, dict[str, bytes]]]) -> str:
+    """Write one shard atomically; return its SHA-256.
+
+    Args:
+        path: the final ``.tar`` path; the data goes to a hidden ``.tmp`` file first.
+        samples: ``(index, {field: bytes})`` pairs; fields are e.g. ``"rgb.png"``, ``"json"``.
+
+    Raises:
+        ValueError: on a field name with a ``/`` or an empty sample; nothing is left behind.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            with tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
+                for index, fields in samples:
+                    if not fields:
+                        raise ValueError(f"sample {index} has no fields")
+                    key = sample_key(index)
+                    for name in sorted(fields):
+                        if "/" in name or not name:
+                            raise ValueError(f"sample {index}: bad field name {name!r}")
+                        _add_member(tar, f"{key}.{name}", fields[name])
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return sha256_file(path)
+
+
+def read_shard(path: str | Path) -> dict[str, dict[str, bytes]]:
+    """All samples of a shard as ``{key: {field: bytes}}`` (for tests, validation and loaders)."""
+    path = Path(path)
+    out: dict[str, dict[str, bytes]] = {}
+    try:
+        with tarfile.open(path, mode="r") as tar:
+            for m in tar:
+                if not m.isfile():
+                    continue
+                key, _, name = m.name.partition(".")
+                data = tar.extractfile(m)
+                assert data is not None
+                out.setdefault(key, {})[name] = data.read()
+    except (OSError, tarfile.TarError) as exc:
+        raise ValueError(f"{path}: not a readable shard ({exc})") from None
+    return out
+
+
+@dataclass
+class ShardWriter:
+    """Generate a dataset of ``num`` samples into ``out`` in shards, resumably.
+
+    Args:
+        out: dataset folder.
+        num: number of samples.
+        shard_size: samples per shard.
+        seed: the dataset seed (passed to :func:`sample_rng` with each index).
+        config: the configuration, recorded in the manifest (JSON-serialisable).
+        versions: package versions, recorded in the manifest.
+    """
+
+    out: Path
+    num: int
+    shard_size: int
+    seed: int
+    config: dict[str, Any] = field(default_factory=dict)
+    versions: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.out = Path(self.out)
+        if self.num < 1 or self.shard_size < 1:
+            raise ValueError(f"num and shard_size must be positive, got {self.num}, {self.shard_size}")
+
+    @property
+    def num_shards(self) -> int:
+        return -(-self.num // self.shard_size)
+
+    def indices(self, shard: int) -> range:
+        return range(shard * self.shard_size, min((shard + 1) * self.shard_size, self.num))
+
+    def _manifest(self, shards: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "seed": self.seed,
+            "num_samples": self.num,
+            "shard_size": self.shard_size,
+            "config": self.config,
+            "versions": self.versions,
+            "shards": shards,
+            "complete": len(shards) == self.num_shards,
+        }
+
+    def pending(self, resume: bool) -> tuple[list[int], dict[str, Any]]:
+        """The shards still to make and the finished ones' manifest entries.
+
+        Without ``resume`` the folder must not hold a dataset yet. With it, the manifest must
+        describe the same run (seed, count, shard size, config); a shard is kept only when its file
+        exists and its SHA-256 matches.
+        """
+        man_path = self.out / MANIFEST
+        if not resume:
+            if man_path.exists() or any(self.out.glob("shard-*.tar")):
+                raise ValueError(f"{self.out}: already holds a dataset; use --resume or another --out")
+            return list(range(self.num_shards)), {}
+        if not man_path.exists():
+            return list(range(self.num_shards)), {}
+        try:
+            man = json.loads(man_path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
+        for key, mine in (
+            ("seed", self.seed),
+            ("num_samples", self.num),
+            ("shard_size", self.shard_size),
+            ("config", self.config),
+        ):
+            if man.get(key) != mine:
+                raise ValueError(f"{man_path}: {key} differs from this run; cannot resume into it")
+        done: dict[str, Any] = {}
+        for name, entry in (man.get("shards") or {}).items():
+            p = self.out / name
+            if p.is_file() and sha256_file(p) == entry.get("sha256"):
+                done[name] = entry
+        todo = [s for s in range(self.num_shards) if shard_name(s) not in done]
+        return todo, done
+
+    def run(
+        self,
+        make_sample: Callable[[int, np.random.Generator], dict[str, bytes]],
+        resume: bool = False,
+        on_shard: Callable[[int, int], None] | None = None,
+        stop_after: int | None = None,
+    ) -> dict[str, Any]:
+        """Make every pending shard; return the final manifest.
+
+        Args:
+            make_sample: ``(index, rng) -> {field: bytes}``; ``rng`` is ``sample_rng(seed, index)``.
+            resume: continue a previous run into the same folder.
+            on_shard: optional ``(shard, samples_in_it)`` callback after each shard (progress).
+            stop_after: stop after this many shards (simulates an interruption in tests).
+        """
+        self.out.mkdir(parents=True, exist_ok=True)
+        todo, done = self.pending(resume)
+        for count, s in enumerate(todo):
+            if stop_after is not None and count >= stop_after:
+                break
+            idx = self.indices(s)
+            digest = write_shard(
+                self.out / shard_name(s),
+                ((i, make_sample(i, sample_rng(self.seed, i))) for i in idx),
+            )
+            done[shard_name(s)] = {"sha256": digest, "samples": len(idx), "first": idx.start}
+            _write_json_atomic(self.out / MANIFEST, self._manifest(dict(sorted(done.items()))))
+            if on_shard is not None:
+                on_shard(s, len(idx))
+        manifest = self._manifest(dict(sorted(done.items())))
+        _write_json_atomic(self.out / MANIFEST, manifest)
+        return manifest
