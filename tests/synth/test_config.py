@@ -1,0 +1,47 @@
+"""Generator configs: strict YAML -> dataclasses, one-line errors naming the file and the key."""
+
+from __future__ import annotations
+
+import pytest
+
+from synth.camera import CameraConfig
+from synth.config import GeneratorConfig, load_config
+
+
+def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("")
+    assert load_config(p) == GeneratorConfig()
+    p.write_text("seed: 3\ncamera:\n  focal_mm: [35, 50]\n  rare_rate: 0\noutput: {shard_size: 8}\n")
+    c = load_config(p)
+    assert c.seed == 3 and c.output.shard_size == 8
+    assert c.camera == CameraConfig(focal_mm=(35.0, 50.0), rare_rate=0.0)
+    assert isinstance(c.camera.focal_mm[0], float)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("sede: 3\n", "sede: unknown key (known: camera, num, output, seed)"),
+        ("camera:\n  focal: [1, 2]\n", "camera.focal: unknown key"),
+        ("seed: three\n", "seed: expected an integer, got 'three'"),
+        ("seed: true\n", "seed: expected an integer"),
+        ("camera: {focal_mm: [35]}\n", "camera.focal_mm: expected 2 values, got 1"),
+        ("camera: {rare_rate: .nan}\n", "camera.rare_rate: expected a finite number"),
+        ("camera: {truncation_rate: 2}\n", "camera: camera truncation_rate must be in [0, 1]"),
+        ("num: 0\n", "(top level): num must be positive"),
+        ("camera: 3\n", "camera: expected a mapping"),
+        ("[1, 2]\n", "(top level): expected a mapping"),
+        ("seed: [\n", "not valid YAML"),
+    ],
+)
+def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, message):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ValueError) as exc:
+        load_config(p)
+    msg = str(exc.value)
+    assert msg.startswith(f"{p}: ") and "\n" not in msg
+    assert message in msg, msg
+    with pytest.raises(ValueError, match="cannot read"):
+        load_config(tmp_path / "absent.yaml")
