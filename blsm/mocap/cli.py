@@ -92,16 +92,18 @@ def _init_worker(model_path: str | None) -> None:
     _WORKER["model"] = _load_model(model_path)
 
 
-def _check(job: dict[str, Any]) -> tuple[str, int, str] | str:
+def _check(job: dict[str, Any]) -> tuple[str, int, str, float] | str:
     """Phase 1: parse and pick the mapping table; a string is an error message."""
+    from blsm.mocap.bvh import resample
     from blsm.mocap.retarget import select_map
 
     try:
-        motion = read_bvh(job["path"], units=job["units"], fps=job["fps"])
+        motion = read_bvh(job["path"], units=job["units"])
         smap = select_map(motion, job["map"])
     except ValueError as exc:
         return str(exc)
-    return job["path"], motion.num_frames, smap.name
+    frames = motion.num_frames if job["fps"] is None else resample(motion, job["fps"]).num_frames
+    return job["path"], frames, smap.name, motion.fps
 
 
 def _retarget(job: dict[str, Any]) -> dict[str, Any]:
@@ -161,23 +163,10 @@ def cmd_import(args: argparse.Namespace) -> int:
     if exists and not args.overwrite:
         raise ValueError(f"{exists[0]}: already exists ({len(exists)} clips in {out}); use --overwrite")
     model = _load_model(args.model)
-    jobs = []
-    for f in files:
-        with open(f, "rb") as fh:  # the file's own rate, for the record
-            head = fh.read(1 << 16).decode("utf-8", "replace")
-        ft = next(
-            (ln.split(":", 1)[1] for ln in head.splitlines() if ln.strip().startswith("Frame Time:")), None
-        )
-        jobs.append(
-            {
-                "path": str(f),
-                "units": args.units,
-                "fps": args.fps,
-                "map": args.map,
-                "iters": args.iters,
-                "source_fps": 1.0 / float(ft) if ft and _isfloat(ft) and float(ft) > 0 else 0.0,
-            }
-        )
+    jobs = [
+        {"path": str(f), "units": args.units, "fps": args.fps, "map": args.map, "iters": args.iters}
+        for f in files
+    ]
     ctx = multiprocessing.get_context("fork")
     with ProcessPoolExecutor(
         args.workers, mp_context=ctx, initializer=_init_worker, initargs=(args.model,)
@@ -189,6 +178,8 @@ def cmd_import(args: argparse.Namespace) -> int:
             for e in errors[1:]:
                 print(f"blsm: error: {e}", file=sys.stderr)
             raise ValueError(errors[0])
+        for job, c in zip(jobs, checks, strict=True):
+            job["source_fps"] = c[3]  # type: ignore[index]
         total = sum(c[1] for c in checks)  # type: ignore[index]
         print(f"importing {len(jobs)} clips, {total} frames, {args.workers} workers -> {out}")
         bar = _Progress(total)
@@ -252,14 +243,6 @@ def cmd_import(args: argparse.Namespace) -> int:
     _print_summary(rows)
     _write_limit_stats(np.concatenate(all_angles), model, out / "limit_hits.png")
     return 0
-
-
-def _isfloat(t: str) -> bool:
-    try:
-        float(t)
-    except ValueError:
-        return False
-    return True
 
 
 def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
