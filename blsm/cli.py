@@ -200,9 +200,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     png = render.save_png(np.asarray(sheet), out_dir / "contact_sheet.png")
     record = {k: v.tolist() for k, v in params.items()}
     record.update(seed=args.seed, keypoints="coco17 overlay: left blue, right red, centre green")
-    tmp = out_dir / "params.json.tmp"
-    tmp.write_text(json.dumps(record))
-    tmp.replace(out_dir / "params.json")
+    from blsm.io import atomic_write
+
+    with atomic_write(out_dir / "params.json", "w") as fh:
+        fh.write(json.dumps(record))
     print(f"wrote {png} ({args.n} random bodies, seed {args.seed}) and {out_dir / 'params.json'}")
     return 0
 

@@ -33,12 +33,16 @@ keypoint_weights       (K, 3) float32      ... and their barycentric weights
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import json
 import os
 import zipfile
+import zlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
@@ -92,8 +96,7 @@ def validate(data: ModelData, where: str = "model") -> None:
         for size, name in zip(arr.shape, shape):
             if dims.setdefault(name, size) != size:
                 raise ValueError(
-                    f"{where}: array {key!r} has shape {arr.shape}; dimension {name} should be "
-                    f"{dims[name]}"
+                    f"{where}: array {key!r} has shape {arr.shape}; dimension {name} should be {dims[name]}"
                 )
     for key in ("bone_names", "parents", "part_names", "keypoint_names"):
         if key not in data.meta:
@@ -110,13 +113,65 @@ def validate(data: ModelData, where: str = "model") -> None:
         raise ValueError(f"{where}: faces index outside [0, {dims['V']})")
 
 
+@contextlib.contextmanager
+def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
+    """Open a hidden temporary file beside ``path``; rename it to ``path`` only on success.
+
+    The parent folder is created. On any error the temporary file is removed and ``path`` is left
+    as it was, so a reader never sees a partial file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with open(tmp, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def sha256_file(path: str | Path) -> str:
+    """SHA-256 of a file's bytes, as hex."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
+    """All arrays of an ``.npz`` file (no pickles); errors name the file and say it is a ``what``."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such {what} file")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
+        raise ValueError(f"{path}: not a readable .npz {what} file ({exc})") from None
+
+
+def read_yaml(path: str | Path, what: str) -> Any:
+    """Parse a YAML file; errors name the file and say it is a ``what``."""
+    import yaml
+
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read {what} ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+
+
 def save_model(data: ModelData, path: str | Path) -> Path:
     """Write a model file atomically (temporary file, then rename)."""
     path = Path(path)
     validate(data, str(path))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_write(path) as fh:
         np.savez_compressed(
             fh,
             format=np.array(FORMAT),
@@ -125,20 +180,13 @@ def save_model(data: ModelData, path: str | Path) -> Path:
             dof_table_yaml=np.array(data.dof_table_yaml),
             **data.arrays,
         )
-    os.replace(tmp, path)
     return path
 
 
 def read_model(path: str | Path) -> ModelData:
     """Read and validate a model file; errors name the file and the problem."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such model file")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            raw = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise ValueError(f"{path}: not a readable .npz model file ({exc})") from exc
+    raw = read_npz(path, "model")
     if str(raw.get("format", "")) != FORMAT:
         raise ValueError(f"{path}: not a BLSM model file (format={raw.get('format')!r})")
     version = int(raw["format_version"])

@@ -475,9 +475,7 @@ def _validate_mesh(i: int, mesh: Mesh) -> tuple[np.ndarray, np.ndarray]:
     if not np.issubdtype(f.dtype, np.integer):
         raise ValueError(f"meshes[{i}] faces must be an integer array, got dtype {f.dtype}.")
     if f.min() < 0 or f.max() >= v.shape[0]:
-        raise ValueError(
-            f"meshes[{i}] faces index outside [0, {v.shape[0]}): min {f.min()}, max {f.max()}."
-        )
+        raise ValueError(f"meshes[{i}] faces index outside [0, {v.shape[0]}): min {f.min()}, max {f.max()}.")
     if not np.isfinite(v).all():
         raise ValueError(f"meshes[{i}] vertices contain NaN/inf; fix the mesh before rendering.")
     return np.ascontiguousarray(v), np.ascontiguousarray(f, dtype=np.uint32)
@@ -788,15 +786,11 @@ def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:
         if not np.issubdtype(arr.dtype, np.floating):
             raise ValueError(f"image must be float in [0, 1] or uint8, got dtype {arr.dtype}.")
         arr = (np.clip(np.nan_to_num(arr), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    from blsm.io import atomic_write
+
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_suffix(".tmp.png")
-    try:
-        Image.fromarray(np.ascontiguousarray(arr)).save(tmp, format="PNG")
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(out) as fh:
+        Image.fromarray(np.ascontiguousarray(arr)).save(fh, format="PNG")
     return out
 
 

@@ -17,8 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-import yaml
-
+from blsm.io import read_yaml
 from synth.camera import CameraConfig
 
 T = TypeVar("T")
@@ -126,10 +125,5 @@ def from_dict(cls: type[T], data: Any, src: str = "config", key: str = "") -> T:
 def load_config(path: str | Path) -> GeneratorConfig:
     """Read a generator configuration file (YAML); see the module docstring."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    data = read_yaml(path, "config")
     return from_dict(GeneratorConfig, data, str(path))

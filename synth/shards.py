@@ -7,7 +7,8 @@ named ``<key>.<field>`` (``000000042.rgb.png``, ``000000042.json``, ...), the We
 
 Guarantees:
 
-- A shard appears only when complete: it is written to ``.shard-XXXXXX.tar.tmp`` and renamed.
+- A shard appears only when complete: it is written to a hidden temporary file beside it
+  (``.shard-000000.tar.tmp``) and renamed.
 - Shards are byte-reproducible: members are written in sorted order with fixed metadata (mtime 0,
   uid/gid 0, mode 0644), and a sample's randomness comes only from :func:`sample_rng` with
   ``(seed, index)``. The same config and seed therefore give the same bytes, and a resumed run
@@ -19,10 +20,8 @@ Guarantees:
 
 from __future__ import annotations
 
-import hashlib
 import io
 import json
-import os
 import tarfile
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -30,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from blsm.io import atomic_write, sha256_file
 
 MANIFEST = "manifest.json"
 FORMAT = "blsm-synth-shards"
@@ -56,18 +57,9 @@ def sample_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(index)])))
 
 
-def sha256_file(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _write_json_atomic(path: Path, obj: Any) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(obj, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    with atomic_write(path, "w") as f:
+        f.write(json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
 def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
@@ -91,24 +83,15 @@ def write_shard(path: str | Path, samples: Iterable[tuple[int, dict[str, bytes]]
         ValueError: on a field name with a ``/`` or an empty sample; nothing is left behind.
     """
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            with tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
-                for index, fields in samples:
-                    if not fields:
-                        raise ValueError(f"sample {index} has no fields")
-                    key = sample_key(index)
-                    for name in sorted(fields):
-                        if "/" in name or not name:
-                            raise ValueError(f"sample {index}: bad field name {name!r}")
-                        _add_member(tar, f"{key}.{name}", fields[name])
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(path) as f, tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
+        for index, fields in samples:
+            if not fields:
+                raise ValueError(f"sample {index} has no fields")
+            key = sample_key(index)
+            for name in sorted(fields):
+                if "/" in name or not name:
+                    raise ValueError(f"sample {index}: bad field name {name!r}")
+                _add_member(tar, f"{key}.{name}", fields[name])
     return sha256_file(path)
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from blsm.io import atomic_write
 from blsm.mocap.bvh import UNITS, read_bvh
 from blsm.mocap.library import MotionClip, list_clips, load_clip, save_clip, sha256
 
@@ -251,9 +252,8 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
     w.writeheader()
     for r in rows:
         w.writerow({k: (f"{v:.2f}" if isinstance(v, float) else v) for k, v in r.items()})
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(buf.getvalue())
-    os.replace(tmp, path)
+    with atomic_write(path, "w") as f:
+        f.write(buf.getvalue())
 
 
 def _print_summary(rows: list[dict[str, Any]]) -> None:
@@ -303,11 +303,8 @@ def cmd_preview(args: argparse.Namespace) -> int:
     return 0
 
 
-def _library_angles(folder: str, model: Any, exclude: list[str] = ()) -> tuple[np.ndarray, list[MotionClip]]:
-    import torch
-
-    from blsm.joint_limits import angles_from_unconstrained
-
+def _library(folder: str, model: Any, exclude: list[str] = ()) -> tuple[list[MotionClip], np.ndarray]:
+    """The clips of a library folder minus ``exclude``, and their stacked poses (N, 47) float64."""
     clips = [load_clip(p) for p in list_clips(folder)]
     unknown = set(exclude) - {c.name for c in clips}
     if unknown:
@@ -316,14 +313,17 @@ def _library_angles(folder: str, model: Any, exclude: list[str] = ()) -> tuple[n
         if c.meta.get("dof_names") != model.dof_names:
             raise ValueError(f"{c.path}: its atoms differ from the model's (imported with another model?)")
     used = [c for c in clips if c.name not in exclude]
-    x = np.concatenate([c.pose for c in used]).astype(np.float64)
-    ang = angles_from_unconstrained(torch.as_tensor(x), model.dof_limits.double()).numpy()
-    return ang, used
+    return used, np.concatenate([c.pose for c in used]).astype(np.float64)
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
+    import torch
+
+    from blsm.joint_limits import angles_from_unconstrained
+
     model = _load_model(args.model)
-    angles, _ = _library_angles(args.library, model)
+    _, x = _library(args.library, model)
+    angles = angles_from_unconstrained(torch.as_tensor(x), model.dof_limits.double()).numpy()
     _write_limit_stats(angles, model, Path(args.out))
     return 0
 
@@ -332,15 +332,7 @@ def cmd_fit_prior(args: argparse.Namespace) -> int:
     from blsm.mocap.prior import fit_pose_prior
 
     model = _load_model(args.model)
-    clips = [load_clip(p) for p in list_clips(args.library)]
-    unknown = set(args.exclude) - {c.name for c in clips}
-    if unknown:
-        raise ValueError(f"{args.library}: no clip named {sorted(unknown)[0]!r} to exclude")
-    used = [c for c in clips if c.name not in args.exclude]
-    for c in used:
-        if c.meta.get("dof_names") != model.dof_names:
-            raise ValueError(f"{c.path}: its atoms differ from the model's (imported with another model?)")
-    x = np.concatenate([c.pose for c in used]).astype(np.float64)
+    used, x = _library(args.library, model, args.exclude)
     t0 = time.perf_counter()
     prior = fit_pose_prior(
         x,

@@ -24,15 +24,16 @@ Read with :func:`load_clip`; a clip feeds the model directly::
 
 from __future__ import annotations
 
-import hashlib
 import json
-import os
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from blsm.io import atomic_write, read_npz, sha256_file
+
+sha256 = sha256_file  # the clip's ``source_sha256``
 
 FORMAT = "blsm-motion"
 VERSION = 1
@@ -68,14 +69,6 @@ class MotionClip:
         return int(self.pose.shape[0])
 
 
-def sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def validate(clip: MotionClip, where: str) -> None:
     """Check shapes, dtypes and finiteness; raise ``ValueError(f"{where}: ...")``."""
     t = clip.pose.shape[0] if clip.pose.ndim == 2 else -1
@@ -108,32 +101,19 @@ def save_clip(clip: MotionClip, path: str | Path) -> Path:
     path = Path(path)
     meta = dict(clip.meta, format=FORMAT, version=VERSION, name=clip.name, fps=float(clip.fps))
     validate(MotionClip(**{**clip.__dict__, "meta": meta}), str(path))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            np.savez(
-                f,
-                meta=np.array(json.dumps(meta)),
-                **{k: np.asarray(getattr(clip, k), dtype=np.float32) for k in _ARRAYS},
-            )
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(path) as f:
+        np.savez(
+            f,
+            meta=np.array(json.dumps(meta)),
+            **{k: np.asarray(getattr(clip, k), dtype=np.float32) for k in _ARRAYS},
+        )
     return path
 
 
 def load_clip(path: str | Path) -> MotionClip:
     """Read and validate a clip file; errors are one line naming the file."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such motion file") from None
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: not a motion file ({exc})") from None
+    data = read_npz(path, "motion")
     if "meta" not in data:
         raise ValueError(f"{path}: not a motion file (no 'meta')")
     try:

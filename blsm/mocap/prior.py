@@ -32,9 +32,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import zipfile
-import zlib
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -44,6 +41,7 @@ import scipy.linalg
 import torch
 from torch import nn
 
+from blsm.io import atomic_write, read_npz
 from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
 
 FORMAT = "blsm-pose-prior"
@@ -242,21 +240,15 @@ class PosePrior(nn.Module):
         path = Path(path)
         arrays = {key: _as_float64(getattr(self, key)) for key in _ARRAYS}
         _validate(arrays, self.dof_names, str(path))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        try:
-            with open(tmp, "wb") as fh:
-                np.savez_compressed(
-                    fh,
-                    format=np.array(FORMAT),
-                    format_version=np.array(FORMAT_VERSION),
-                    dof_names_json=np.array(json.dumps(self.dof_names)),
-                    meta_json=np.array(json.dumps(self.meta, sort_keys=True)),
-                    **arrays,
-                )
-            os.replace(tmp, path)
-        finally:
-            tmp.unlink(missing_ok=True)
+        with atomic_write(path) as fh:
+            np.savez_compressed(
+                fh,
+                format=np.array(FORMAT),
+                format_version=np.array(FORMAT_VERSION),
+                dof_names_json=np.array(json.dumps(self.dof_names)),
+                meta_json=np.array(json.dumps(self.meta, sort_keys=True)),
+                **arrays,
+            )
         return path
 
     @classmethod
@@ -274,13 +266,7 @@ class PosePrior(nn.Module):
                 or inconsistent file.
         """
         path = Path(path)
-        if not path.is_file():
-            raise ValueError(f"{path}: no such pose prior file")
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                raw = {key: npz[key] for key in npz.files}
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
-            raise ValueError(f"{path}: not a readable .npz pose prior file ({exc})") from exc
+        raw = read_npz(path, "pose prior")
         fmt = str(raw["format"]) if "format" in raw else None
         if fmt != FORMAT:
             raise ValueError(f"{path}: not a BLSM pose prior file (format={fmt!r})")

@@ -34,8 +34,9 @@ from typing import Any
 
 import numpy as np
 import torch
-import yaml
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from blsm.io import read_yaml
 from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
 from blsm.kinematics import forward_kinematics, joint_rotations, local_scales
 from blsm.mocap.bvh import BvhError, BvhMotion
@@ -129,12 +130,7 @@ def _blsm_point(v: Any, where: str) -> Any:
 def load_map(path: str | Path) -> SkeletonMap:
     """Read and validate a mapping table (YAML)."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read mapping table ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    doc = read_yaml(path, "mapping table")
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: a mapping table is a YAML mapping")
     for key in ("name", "root", "leg", "segments"):
@@ -342,20 +338,6 @@ def _unit(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return v / n.clamp(min=1e-9), n[..., 0]
 
 
-def _rotvec_to_matrix(r: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula, smooth at 0 (B, 3) -> (B, 3, 3)."""
-    theta2 = (r * r).sum(-1, keepdim=True)
-    theta = torch.sqrt(theta2 + 1e-24)
-    small = theta2 < 1e-8
-    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / theta2.clamp(min=1e-24))
-    k = torch.zeros(r.shape[0], 3, 3, dtype=r.dtype, device=r.device)
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -r[:, 2], r[:, 1], -r[:, 0]
-    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = r[:, 2], -r[:, 1], r[:, 0]
-    eye = torch.eye(3, dtype=r.dtype, device=r.device)
-    return eye + a[..., None] * k + b[..., None] * (k @ k)
-
-
 def _matrix_to_rotvec(m: torch.Tensor) -> torch.Tensor:
     """(B, 3, 3) -> (B, 3) axis-angle, re-orthonormalised first (float32 products drift)."""
     from scipy.spatial.transform import Rotation
@@ -506,7 +488,7 @@ def retarget(
         sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=lr * 0.05)
         for _ in range(steps):
             opt.zero_grad(set_to_none=True)
-            frame_loss(x, base @ _rotvec_to_matrix(r), target).sum().backward()
+            frame_loss(x, base @ axis_angle_to_rotation_matrix(r), target).sum().backward()
             opt.step()
             sched.step()
         return x.detach(), r.detach()
@@ -515,7 +497,7 @@ def retarget(
         with torch.no_grad():
             return torch.cat(
                 [
-                    frame_loss(x[s], r0_all[s] @ _rotvec_to_matrix(r[s]), src_dir[s])
+                    frame_loss(x[s], r0_all[s] @ axis_angle_to_rotation_matrix(r[s]), src_dir[s])
                     for s in _blocks(n_frames, block)
                 ]
             )
@@ -539,7 +521,7 @@ def retarget(
         for s in _blocks(n_frames, block):
             x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, iters)
     pose = x_all
-    g_out = r0_all @ _rotvec_to_matrix(r_all)
+    g_out = r0_all @ axis_angle_to_rotation_matrix(r_all)
 
     with torch.no_grad():
         pts, theta = pose_points(pose, g_out)
