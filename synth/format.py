@@ -1,0 +1,219 @@
+"""The sample format of a generated dataset: the fields of one image and how they are encoded.
+
+A dataset folder (``synth generate ... --out DIR``) holds ``manifest.json``, the shards
+``shard-000000.tar`` ... (WebDataset layout, see :mod:`synth.shards`) and ``subjects/``, one
+``<subject>.npz`` per person used (:mod:`synth.subjects`), so every sample's mesh can be rebuilt.
+
+Every sample (key ``f"{index:09d}"``) has these members, all made by one render of one scene:
+
+==================  =============================================================================
+``rgb.png``         (H, W, 3) uint8 sRGB image.
+``json``            the labels (below), UTF-8 JSON.
+``mask.png``        (H, W) uint8, mode ``L``: 0 background, ``i + 1`` person ``i`` of ``people``.
+``parts.png``       (H, W) uint8, mode ``P`` with :data:`PART_PALETTE`: 0 background, ``1 + k``
+                    the thesis' part ``PART_NAMES[k]`` (head, torso, left_arm, right_arm, left_leg,
+                    right_leg; left is the person's left).
+``bones.png``       (H, W) uint8, mode ``P`` with :data:`BONE_PALETTE`: 0 background, ``1 + j`` the
+                    bone ``BONE_NAMES[j]`` (the bone of largest skinning weight of the hit face).
+``depth.exr``       (H, W) float32 OpenEXR, one channel ``Z``: camera-space z in metres of the
+                    surface hit by the ray through the pixel centre; 0 where nothing is hit.
+``corr.npy.gz``     (H, W, 3) float32 (gzip of ``numpy.save``): ``[face, b1, b2]``: the index of the
+                    hit face of the person's rendered mesh (-1 on background) and the barycentric
+                    coordinates of the hit point on it (``b0 = 1 - b1 - b2`` for the face's first
+                    vertex).
+==================  =============================================================================
+
+Every label pixel is the first hit of the ray through the pixel centre ``(u + 0.5, v + 0.5)``: the
+pixel whose top-left corner is ``(u, v)`` covers ``[u, u + 1) x [v, v + 1)`` in the OpenCV image
+coordinates used by ``K``. The RGB is the same scene with the same camera rendered with many samples
+per pixel, so its edges are anti-aliased while the labels are exact per pixel centre.
+
+The JSON (``format`` "blsm-synth-sample", ``version`` 1) holds:
+
+- ``index``, ``seed``; ``image``: ``width``, ``height``, ``pixel_center`` (0.5);
+- ``camera``: ``K`` (3x3), ``R`` (3x3) and ``t`` (3) world to camera (OpenCV: x right, y down,
+  z forward), and what the sampler drew (``info``);
+- ``background``: its kind and source, rotation and exposure;
+- ``keypoint_names`` (the model's keypoints), ``bone_names``, ``part_names``;
+- ``people``: one entry per person, in mask order:
+  ``subject`` (id in ``subjects/``), ``pipeline`` (rigged, raw or blsm), ``motion`` (source, clip,
+  frame), ``blsm`` (``pose`` 47 unconstrained values x of Eq. 6, ``angles`` 47 radians, ``bone``,
+  ``shape``, ``global_orient`` axis-angle, ``transl`` metres), ``bone_lengths`` (metres, per bone),
+  ``keypoints_3d`` (K, 3) world metres, ``keypoints_3d_cam`` (K, 3) camera metres,
+  ``keypoints_2d`` (K, 2) pixels, ``visible`` (K) whether the ray through the keypoint's pixel first
+  hits this person on a face of the keypoint's own body region, ``in_frame`` (K), ``box``
+  ``[x0, y0, x1, y1]`` pixel edges of the person's visible mask, ``box_full`` the box of the
+  person's whole projected mesh (may leave the image), ``pixels`` (visible mask area).
+"""
+
+from __future__ import annotations
+
+import gzip
+import io
+import json
+import os
+import tempfile
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from blsm import skeleton
+
+FORMAT = "blsm-synth-sample"
+VERSION = 1
+FIELDS = ("rgb.png", "json", "mask.png", "parts.png", "bones.png", "depth.exr", "corr.npy.gz")
+
+PART_NAMES = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
+PART_PALETTE = np.array(
+    [
+        [0, 0, 0],  # background
+        [230, 159, 0],  # head
+        [86, 180, 233],  # torso
+        [0, 158, 115],  # left_arm
+        [213, 94, 0],  # right_arm
+        [0, 114, 178],  # left_leg
+        [204, 121, 167],  # right_leg
+    ],
+    dtype=np.uint8,
+)
+"""Background black, then the Okabe-Ito colours: distinguishable with colour-blindness."""
+
+BONE_NAMES = tuple(skeleton.BONE_NAMES)
+
+
+def _bone_palette() -> np.ndarray:
+    # Golden-angle hues: neighbouring bone indices get distant colours.
+    out = [[0, 0, 0]]
+    for j in range(len(BONE_NAMES)):
+        h = (j * 0.381966) % 1.0
+        i, f = int(h * 6), h * 6 - int(h * 6)
+        v, s = 0.95, 0.75 if j % 2 else 0.55
+        p, q, t = v * (1 - s), v * (1 - s * f), v * (1 - s * (1 - f))
+        rgb = [(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i % 6]
+        out.append([round(255 * c) for c in rgb])
+    return np.array(out, dtype=np.uint8)
+
+
+BONE_PALETTE = _bone_palette()
+"""Background black, then one colour per bone in ``BONE_NAMES`` order."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Encoders (deterministic bytes: the same arrays always give the same bytes)
+
+
+def encode_png(image: np.ndarray, palette: np.ndarray | None = None) -> bytes:
+    """(H, W, 3) or (H, W) uint8 to PNG bytes; with ``palette`` (N, 3) a mode ``P`` label image."""
+    if image.dtype != np.uint8:
+        raise ValueError(f"PNG images must be uint8, got {image.dtype}")
+    img = Image.fromarray(image)
+    if palette is not None:
+        if image.ndim != 2:
+            raise ValueError(f"a label image must be (H, W), got {image.shape}")
+        img = Image.fromarray(image, mode="L").convert("P")
+        img.putpalette(palette.reshape(-1).tolist())
+    buf = io.BytesIO()
+    img.save(buf, format="PNG", compress_level=6)
+    return buf.getvalue()
+
+
+def decode_png(data: bytes, what: str = "png") -> np.ndarray:
+    """PNG bytes to a uint8 array; label (``P``) images give their indices, not colours."""
+    try:
+        img = Image.open(io.BytesIO(data))
+        img.load()
+    except Exception as exc:  # PIL raises many types for bad data
+        raise ValueError(f"{what}: not a readable PNG ({exc})") from None
+    if img.mode == "P":
+        return np.asarray(img, dtype=np.uint8)
+    return np.asarray(img.convert("RGB") if img.mode not in ("L", "RGB") else img, dtype=np.uint8)
+
+
+def encode_npy_gz(array: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
+    return gzip.compress(buf.getvalue(), compresslevel=6, mtime=0)
+
+
+def decode_npy_gz(data: bytes, what: str = "npy.gz") -> np.ndarray:
+    try:
+        return np.load(io.BytesIO(gzip.decompress(data)), allow_pickle=False)
+    except Exception as exc:
+        raise ValueError(f"{what}: not a readable gzipped .npy ({exc})") from None
+
+
+def encode_exr(depth: np.ndarray) -> bytes:
+    """(H, W) float32 metres to single-channel (``Z``) zip-compressed OpenEXR bytes (OpenImageIO)."""
+    import OpenImageIO as oiio
+
+    depth = np.ascontiguousarray(depth, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got {depth.shape}")
+    spec = oiio.ImageSpec(depth.shape[1], depth.shape[0], 1, "float")
+    spec.channelnames = ("Z",)
+    spec.attribute("compression", "zip")
+    fd, tmp = tempfile.mkstemp(suffix=".exr")
+    os.close(fd)
+    try:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None or not out.open(tmp, spec):
+            raise RuntimeError(f"OpenImageIO cannot write EXR: {oiio.geterror()}")
+        out.write_image(depth[..., None])
+        out.close()
+        with open(tmp, "rb") as f:
+            return f.read()
+    finally:
+        os.unlink(tmp)
+
+
+def decode_exr(data: bytes, what: str = "exr") -> np.ndarray:
+    """OpenEXR bytes to an (H, W) float32 array (first channel)."""
+    import OpenImageIO as oiio
+
+    fd, tmp = tempfile.mkstemp(suffix=".exr")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        inp = oiio.ImageInput.open(tmp)
+        if inp is None:
+            raise ValueError(f"{what}: not a readable EXR ({oiio.geterror()})")
+        arr = inp.read_image("float")
+        inp.close()
+    finally:
+        os.unlink(tmp)
+    arr = np.asarray(arr, dtype=np.float32)
+    return arr[..., 0] if arr.ndim == 3 else arr
+
+
+def encode_json(obj: Any) -> bytes:
+    return (json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False) + "\n").encode()
+
+
+def decode_json(data: bytes, what: str = "json") -> Any:
+    try:
+        return json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{what}: not valid JSON ({exc})") from None
+
+
+def decode_sample(fields: dict[str, bytes], what: str = "sample") -> dict[str, Any]:
+    """All members of one sample as arrays: ``rgb``, ``json``, ``mask``, ``parts``, ``bones``,
+    ``depth``, ``corr`` (the ones present)."""
+    out: dict[str, Any] = {}
+    for name, data in fields.items():
+        where = f"{what}.{name}"
+        if name == "json":
+            out["json"] = decode_json(data, where)
+        elif name.endswith(".png"):
+            out[name[:-4]] = decode_png(data, where)
+        elif name.endswith(".exr"):
+            out[name[:-4]] = decode_exr(data, where)
+        elif name.endswith(".npy.gz"):
+            out[name[:-7]] = decode_npy_gz(data, where)
+    return out
+
+
+def colorize(labels: np.ndarray, palette: np.ndarray) -> np.ndarray:
+    """(H, W) label indices to (H, W, 3) uint8 colours (for previews)."""
+    return palette[np.clip(labels, 0, len(palette) - 1)]

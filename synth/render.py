@@ -1,0 +1,249 @@
+"""Mitsuba 3 rendering of textured people with exact per-pixel labels from the same scene.
+
+One :class:`PeopleRenderer` holds one loaded scene: a mesh per person slot (textured, diffuse), an
+environment map that lights the scene (and shows as the background, or is hidden when a backplate
+is composited behind the people), and two sensors that always share one OpenCV camera:
+
+- ``sensor`` renders the image with the path tracer, ``spp`` samples per pixel;
+- ``label_sensor`` renders the AOV integrator (``depth``, ``position``, ``prim_index``) with one sample at
+  every pixel centre (a non-jittered stratified sampler and a box filter), so every label pixel is
+  the first hit of the ray through ``(u + 0.5, v + 0.5)``.
+
+Every frame only updates the scene through ``mi.traverse`` (vertex positions and normals, textures,
+environment, camera) and ``update()``; the scene is rebuilt only when a mesh topology or the image
+size changes. Meshes are split at UV seams for rendering (Mitsuba keeps one UV per vertex) while
+face indices stay those of the person's mesh.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from blsm.render import Camera, _mitsuba, _resolve_variant, _sensor_params, _to_world_matrix
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    c = np.asarray(c, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+@dataclass(frozen=True)
+class RenderMesh:
+    """A person's mesh prepared for Mitsuba: vertices split at UV seams.
+
+    Attributes:
+        faces: (F, 3) faces of the person's mesh (vertex indices).
+        split_vertex: (S,) original vertex of every render vertex.
+        split_faces: (F, 3) faces over the render vertices (same order as ``faces``).
+        texcoords: (S, 2) Mitsuba UVs (v down: ``1 - v`` of the mesh's v-up UVs).
+    """
+
+    faces: np.ndarray
+    split_vertex: np.ndarray
+    split_faces: np.ndarray
+    texcoords: np.ndarray
+
+    @staticmethod
+    def build(faces: np.ndarray, uv: np.ndarray, faces_uv: np.ndarray) -> RenderMesh:
+        pairs = np.stack([faces.reshape(-1), faces_uv.reshape(-1)], axis=1)
+        uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)
+        tc = uv[uniq[:, 1]].astype(np.float32)
+        tc[:, 1] = 1.0 - tc[:, 1]
+        return RenderMesh(
+            faces=np.asarray(faces, dtype=np.int64),
+            split_vertex=uniq[:, 0],
+            split_faces=inverse.reshape(-1, 3).astype(np.uint32),
+            texcoords=tc,
+        )
+
+    @property
+    def key(self) -> tuple[int, int, int]:
+        return (len(self.split_vertex), len(self.faces), hash(self.split_faces.tobytes()))
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(V, 3) area-weighted unit vertex normals of the (unsplit) mesh, so UV seams shade smoothly."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vn, faces[:, k], fn)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    return (vn / np.maximum(norm, 1e-12)).astype(np.float32)
+
+
+@dataclass
+class Frame:
+    """What one render returns.
+
+    Attributes:
+        rgb: (H, W, 3) float32 linear RGB (background included).
+        alpha: (H, W) float32 coverage of the people in the RGB render.
+        hit: (H, W) bool, a person is hit by the pixel-centre ray.
+        position: (H, W, 3) float32 world position of the hit.
+        face: (H, W) int64 face index of the hit (-1 where no hit).
+    """
+
+    rgb: np.ndarray
+    alpha: np.ndarray
+    hit: np.ndarray
+    position: np.ndarray
+    face: np.ndarray
+
+
+class PeopleRenderer:
+    """A Mitsuba scene for a fixed list of person meshes (topologies) and an image size."""
+
+    def __init__(
+        self,
+        meshes: list[RenderMesh],
+        texture_shapes: list[tuple[int, int]],
+        width: int,
+        height: int,
+        env_shape: tuple[int, int] = (256, 512),
+        variant: str | None = None,
+        max_depth: int = 4,
+        backplate: bool = False,
+    ) -> None:
+        self.variant = _resolve_variant(variant)
+        mi = self.mi = _mitsuba(self.variant)
+        self.width, self.height = width, height
+        self.meshes = meshes
+        self.backplate = backplate
+        sensor_common = {
+            "type": "perspective",
+            "fov": 40.0,
+            "fov_axis": "x",
+            "near_clip": 0.01,
+            "far_clip": 1000.0,
+        }
+        scene: dict[str, Any] = {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": max_depth, "hide_emitters": backplate},
+            "sensor": {
+                **sensor_common,
+                "sampler": {"type": "independent", "sample_count": 16},
+                "film": {
+                    "type": "hdrfilm",
+                    "width": width,
+                    "height": height,
+                    "pixel_format": "rgba",
+                    "rfilter": {"type": "gaussian"},
+                },
+            },
+            "label_sensor": {
+                **sensor_common,
+                "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+                "film": {
+                    "type": "hdrfilm",
+                    "width": width,
+                    "height": height,
+                    "pixel_format": "rgb",
+                    "rfilter": {"type": "box"},
+                },
+            },
+            "env": {
+                "type": "envmap",
+                "bitmap": mi.Bitmap(np.full((*env_shape, 3), 0.5, dtype=np.float32)),
+            },
+        }
+        for i, (m, tshape) in enumerate(zip(meshes, texture_shapes)):
+            props = mi.Properties()
+            props["bsdf"] = mi.load_dict(
+                {
+                    "type": "diffuse",
+                    "reflectance": {
+                        "type": "bitmap",
+                        "bitmap": mi.Bitmap(np.full((*tshape, 3), 0.5, dtype=np.float32)),
+                        "raw": True,
+                        "filter_type": "bilinear",
+                    },
+                }
+            )
+            mesh = mi.Mesh(
+                f"person_{i}", len(m.split_vertex), len(m.split_faces), props=props,
+                has_vertex_normals=True, has_vertex_texcoords=True,
+            )  # fmt: skip
+            p = mi.traverse(mesh)
+            p["vertex_positions"] = mi.Float(np.zeros(3 * len(m.split_vertex), dtype=np.float32))
+            p["faces"] = mi.UInt32(m.split_faces.reshape(-1))
+            p["vertex_texcoords"] = mi.Float(m.texcoords.reshape(-1))
+            p.update()
+            scene[f"person_{i}"] = mesh
+        self.scene = mi.load_dict(scene)
+        self.params = mi.traverse(self.scene)
+        self.label_integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth,pos:position,pi:prim_index"})
+
+    def render(
+        self,
+        vertices: list[np.ndarray],
+        textures: list[np.ndarray],
+        camera: Camera,
+        env: np.ndarray,
+        env_rotation: float,
+        env_scale: float,
+        backplate: np.ndarray | None = None,
+        spp: int = 16,
+        seed: int = 0,
+    ) -> Frame:
+        """Render one frame.
+
+        Args:
+            vertices: per person slot, (V, 3) world positions of the person's mesh.
+            textures: per person slot, (H, W, 3) linear albedo float32 (row 0 = top of the image).
+            camera: the OpenCV camera (its size must be the renderer's).
+            env: (He, We, 3) linear RGB latitude-longitude environment (lights the scene).
+            env_rotation: radians about +Y.
+            env_scale: radiance scale (exposure).
+            backplate: (H, W, 3) linear RGB drawn behind the people (the renderer must have been
+                built with ``backplate=True``), or None to see the environment.
+            spp: samples per pixel of the image.
+            seed: the path tracer's seed.
+        """
+        mi, p = self.mi, self.params
+        if (camera.width, camera.height) != (self.width, self.height):
+            raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
+        if len(vertices) != len(self.meshes) or len(textures) != len(self.meshes):
+            raise ValueError(f"need {len(self.meshes)} meshes and textures, got {len(vertices)}, {len(textures)}")
+        for i, (m, v, tex) in enumerate(zip(self.meshes, vertices, textures)):
+            normals = vertex_normals(v, m.faces)
+            p[f"person_{i}.vertex_positions"] = mi.Float(np.ascontiguousarray(v[m.split_vertex]).reshape(-1))
+            p[f"person_{i}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
+            p[f"person_{i}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))
+        p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
+        p["env.scale"] = float(env_scale)
+        c, s = math.cos(env_rotation), math.sin(env_rotation)
+        rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
+        p["env.to_world"] = mi.AffineTransform4f(rot)
+        x_fov, ppx, ppy = _sensor_params(camera)
+        for name in ("sensor", "label_sensor"):
+            p[f"{name}.to_world"] = mi.AffineTransform4f(_to_world_matrix(camera))
+            p[f"{name}.x_fov"] = x_fov
+            p[f"{name}.principal_point_offset_x"] = ppx
+            p[f"{name}.principal_point_offset_y"] = ppy
+        p.update()
+
+        sensors = self.scene.sensors()
+        image = np.asarray(mi.TensorXf(mi.render(self.scene, sensor=sensors[0], spp=spp, seed=seed)))
+        aov = np.asarray(
+            mi.TensorXf(mi.render(self.scene, sensor=sensors[1], integrator=self.label_integrator, spp=1))
+        )
+        rgb, alpha = image[..., :3], np.clip(image[..., 3], 0.0, 1.0)
+        if backplate is not None:
+            if not self.backplate:
+                raise ValueError("this renderer shows the environment; build it with backplate=True")
+            rgb = rgb + (1.0 - alpha[..., None]) * backplate  # film RGB is alpha-weighted
+        hit = aov[..., 0] > 0.0  # the ray distance; 0 where nothing is hit
+        position = aov[..., 1:4]
+        face = np.rint(aov[..., 4]).astype(np.int64)
+        face[~hit] = -1
+        return Frame(rgb=rgb.astype(np.float32), alpha=alpha, hit=hit, position=position, face=face)
