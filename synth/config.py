@@ -35,12 +35,118 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class SubjectsConfig:
+    """Who is rendered: ``anny`` (``count`` people sampled from Anny) or ``folder`` (user scans in
+    the folder format of :mod:`synth.scans`, path relative to the working directory)."""
+
+    source: str = "anny"
+    count: int = 8
+    folder: str = ""
+    texture_size: int = 1024
+
+    def __post_init__(self) -> None:
+        if self.source not in ("anny", "folder"):
+            raise ValueError(f"subjects.source must be anny or folder, got {self.source!r}")
+        if self.source == "folder" and not self.folder:
+            raise ValueError("subjects.folder is needed with source: folder")
+        if self.count < 1:
+            raise ValueError(f"subjects.count must be positive, got {self.count}")
+        if not 16 <= self.texture_size <= 8192:
+            raise ValueError(f"subjects.texture_size must be in [16, 8192], got {self.texture_size}")
+
+
+@dataclass(frozen=True)
+class PosesConfig:
+    """Where poses come from: ``prior`` (the pose prior; ``prior`` file, empty for the packaged
+    one), ``library`` (frames of the clips in the motion library folder ``library``), or ``mix``
+    (the library with probability ``library_rate``, else the prior)."""
+
+    source: str = "prior"
+    prior: str = ""
+    library: str = ""
+    library_rate: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.source not in ("prior", "library", "mix"):
+            raise ValueError(f"poses.source must be prior, library or mix, got {self.source!r}")
+        if self.source != "prior" and not self.library:
+            raise ValueError(f"poses.library (a motion library folder) is needed with source: {self.source}")
+        if not 0.0 <= self.library_rate <= 1.0:
+            raise ValueError(f"poses.library_rate must be in [0, 1], got {self.library_rate}")
+
+
+@dataclass(frozen=True)
+class PeopleConfig:
+    """How many people per image (uniform in [min, max]) and the gap (metres) kept between their
+    footprints, so that they never interpenetrate."""
+
+    min: int = 1
+    max: int = 1
+    gap: float = 0.1
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.min <= self.max <= 8:
+            raise ValueError(f"people must satisfy 1 <= min <= max <= 8, got {self.min}, {self.max}")
+        if self.gap < 0:
+            raise ValueError(f"people.gap must be >= 0, got {self.gap}")
+
+
+@dataclass(frozen=True)
+class BackgroundConfig:
+    """Backgrounds (:mod:`synth.backgrounds`): ``default`` (embedded procedural sky), ``hdri`` or
+    ``images`` (a ``folder``); exposure in stops, drawn uniformly; environment width in texels."""
+
+    kind: str = "default"
+    folder: str = ""
+    exposure_ev: tuple[float, float] = (-0.5, 0.5)
+    env_width: int = 1024
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("default", "hdri", "images"):
+            raise ValueError(f"background.kind must be default, hdri or images, got {self.kind!r}")
+        if self.kind != "default" and not self.folder:
+            raise ValueError(f"background.folder is needed with kind: {self.kind}")
+        if not self.exposure_ev[0] <= self.exposure_ev[1]:
+            raise ValueError(f"background.exposure_ev must be [low, high], got {list(self.exposure_ev)}")
+        if not 64 <= self.env_width <= 8192:
+            raise ValueError(f"background.env_width must be in [64, 8192], got {self.env_width}")
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Mitsuba settings: samples per pixel, path depth, the variant (empty: llvm on CPU, cuda where
+    a GPU works, probed once), the recycling of a worker after ``recycle_after`` images."""
+
+    spp: int = 16
+    max_depth: int = 4
+    variant: str = ""
+    recycle_after: int = 2000
+
+    def __post_init__(self) -> None:
+        if self.spp < 1 or self.max_depth < 1 or self.recycle_after < 1:
+            raise ValueError("render.spp, render.max_depth and render.recycle_after must be positive")
+
+
+@dataclass(frozen=True)
 class GeneratorConfig:
-    """The top level of a ``configs/synth/*.yaml`` file (grows with the generator, issue 4)."""
+    """The top level of a ``configs/synth/*.yaml`` file.
+
+    ``pipeline`` is one of ``rigged`` (default), ``raw``, ``blsm`` (thesis Fig. 6.11);
+    ``subdivide`` (blsm only) splits every triangle into four once for denser labels; ``skip_bad``
+    skips a sample that fails and lists it in the manifest instead of stopping.
+    """
 
     seed: int = 0
     num: int = 64
+    pipeline: str = "rigged"
+    subdivide: bool = False
+    skip_bad: bool = False
+    subjects: SubjectsConfig = field(default_factory=SubjectsConfig)
+    poses: PosesConfig = field(default_factory=PosesConfig)
+    people: PeopleConfig = field(default_factory=PeopleConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
+    background: BackgroundConfig = field(default_factory=BackgroundConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
     def __post_init__(self) -> None:
@@ -48,6 +154,10 @@ class GeneratorConfig:
             raise ValueError(f"seed must be non-negative, got {self.seed}")
         if self.num < 1:
             raise ValueError(f"num must be positive, got {self.num}")
+        if self.pipeline not in ("rigged", "raw", "blsm"):
+            raise ValueError(f"pipeline must be rigged, raw or blsm, got {self.pipeline!r}")
+        if self.subdivide and self.pipeline != "blsm":
+            raise ValueError("subdivide applies to the blsm pipeline only")
 
 
 def _convert(tp: Any, value: Any, src: str, key: str) -> Any:

@@ -1,0 +1,136 @@
+"""Backgrounds and lighting: HDRI folders, backplate image folders, and an embedded procedural sky.
+
+- ``hdri``: a folder of latitude-longitude environment maps (``.exr``, ``.hdr``), read and resized
+  with OpenImageIO. The environment is visible behind the people and lights them; each image draws
+  a rotation about +Y and an exposure. Maps are normalised to a mean luminance of 1 first, so one
+  exposure range suits every file.
+- ``images``: a folder of backplates (``.jpg``, ``.jpeg``, ``.png``, ``.exr``, ``.hdr``, ``.tif``);
+  each image draws one, crops it to the image's aspect at a random place and resizes it (OpenImageIO).
+  People are lit by the procedural sky (hidden) and composited over the plate with the render's
+  anti-aliased coverage.
+- ``default``: the embedded procedural sky (no files): a sky gradient, a sun and a ground plane
+  colour, drawn per image.
+
+Bad input (a missing or empty folder, an unreadable file) is a ValueError naming the path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+HDRI_EXT = (".exr", ".hdr")
+IMAGE_EXT = (".jpg", ".jpeg", ".png", ".exr", ".hdr", ".tif", ".tiff")
+KINDS = ("default", "hdri", "images")
+_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+def list_folder(folder: str | Path, exts: tuple[str, ...], what: str) -> list[Path]:
+    """Sorted files of ``folder`` with one of ``exts``; an error when there is none."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: no such {what} folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts and p.is_file())
+    if not files:
+        raise ValueError(f"{folder}: the {what} folder holds no {'/'.join(exts)} files")
+    return files
+
+
+def read_image(path: str | Path, width: int | None = None, height: int | None = None) -> np.ndarray:
+    """Read an image with OpenImageIO as (H, W, 3) float32 linear RGB, optionally resized.
+
+    8-bit and 16-bit files are taken as sRGB-encoded and linearised; float files are linear.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    buf = oiio.ImageBuf(str(path))
+    if buf.has_error or buf.spec().width < 1:
+        raise ValueError(f"{path}: cannot read the image ({buf.geterror() or 'empty'})")
+    spec = buf.spec()
+    if width is not None and height is not None and (spec.width, spec.height) != (width, height):
+        buf = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, spec.nchannels))
+    px = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float32)
+    if px.ndim == 2:
+        px = px[..., None]
+    if px.shape[-1] == 1:
+        px = np.repeat(px, 3, axis=-1)
+    px = px[..., :3]
+    if not np.isfinite(px).all():
+        raise ValueError(f"{path}: the image has NaN or inf pixels")
+    if spec.format.basetype in (oiio.UINT8, oiio.UINT16) or spec.get_string_attribute("oiio:ColorSpace") == "sRGB":
+        px = np.where(px <= 0.04045, px / 12.92, ((np.clip(px, 0, None) + 0.055) / 1.055) ** 2.4)
+    return np.ascontiguousarray(px, dtype=np.float32)
+
+
+def load_hdri(path: str | Path, width: int) -> np.ndarray:
+    """An environment map resized to (width / 2, width), normalised to mean luminance 1."""
+    env = read_image(path, width, width // 2)
+    env = np.clip(env, 0.0, None)
+    # Solid-angle weights of the rows of a latitude-longitude map.
+    theta = (np.arange(env.shape[0]) + 0.5) / env.shape[0] * math.pi
+    w = np.sin(theta)[:, None]
+    mean = float((env @ _LUMA * w).sum() / (w.sum() * env.shape[1]))
+    if mean <= 0:
+        raise ValueError(f"{path}: the environment map is black")
+    return (env / mean).astype(np.float32)
+
+
+def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Generator) -> np.ndarray:
+    """A random crop of ``image`` at the target aspect (at least 60 % of the shorter side), resized."""
+    import OpenImageIO as oiio
+
+    h, w = image.shape[:2]
+    aspect = width / height
+    ch = int(min(h, w / aspect) * rng.uniform(0.6, 1.0))
+    cw = max(1, int(round(ch * aspect)))
+    ch = max(1, ch)
+    y0 = int(rng.integers(0, h - ch + 1))
+    x0 = int(rng.integers(0, w - cw + 1))
+    buf = oiio.ImageBuf(np.ascontiguousarray(image[y0 : y0 + ch, x0 : x0 + cw]))
+    out = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, 3))
+    return np.asarray(out.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
+
+
+def procedural_sky(width: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
+    """An embedded environment: sky gradient, sun disk and glow, coloured ground; mean luminance 1.
+
+    Returns:
+        (width / 2, width, 3) float32 linear RGB and the parameters drawn.
+    """
+    h = width // 2
+    theta = (np.arange(h) + 0.5) / h * math.pi  # 0 at the zenith
+    phi = (np.arange(width) + 0.5) / width * 2 * math.pi
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], axis=-1)  # Y up
+    sun_el = math.radians(rng.uniform(15.0, 75.0))
+    sun_az = rng.uniform(0.0, 2 * math.pi)
+    sun = np.array([math.cos(sun_el) * math.sin(sun_az), math.sin(sun_el), math.cos(sun_el) * math.cos(sun_az)])
+    zenith = np.array([0.25, 0.45, 0.95]) * rng.uniform(0.6, 1.2)
+    horizon = np.array([0.85, 0.9, 1.0]) * rng.uniform(0.8, 1.2)
+    ground = np.array([rng.uniform(0.15, 0.45), rng.uniform(0.15, 0.4), rng.uniform(0.1, 0.35)])
+    up = np.clip(d[..., 1], 0.0, 1.0)[..., None]
+    sky = horizon + (zenith - horizon) * up**0.5
+    cos_sun = np.clip(d @ sun, -1.0, 1.0)[..., None]
+    sun_strength = rng.uniform(20.0, 80.0)
+    sky = sky + np.array([1.0, 0.9, 0.75]) * (sun_strength * (cos_sun > math.cos(math.radians(2.5))) + 0.6 * np.exp((cos_sun - 1) * 12))
+    env = np.where(d[..., 1:2] >= 0, sky, ground * (1.0 + 0.2 * sun[1]))
+    theta_w = np.sin(theta)[:, None]
+    mean = float(((env @ _LUMA) * theta_w).sum() / (theta_w.sum() * width))
+    params = {"sun_elevation_deg": math.degrees(sun_el), "sun_azimuth_deg": math.degrees(sun_az)}
+    return (env / mean).astype(np.float32), params
+
+
+@dataclass
+class Background:
+    """What one image uses behind and around the people."""
+
+    kind: str
+    env: np.ndarray
+    rotation: float
+    scale: float
+    backplate: np.ndarray | None
+    info: dict

@@ -1,0 +1,473 @@
+"""A PyTorch dataset of person crops from a generated dataset folder, HMR/SPIN style.
+
+    ds = SynthDataset("data/train", crop=224, augment=AugmentConfig(), seed=None)
+    loader = DataLoader(ds, batch_size=64, num_workers=8, shuffle=True)
+
+One item is one person instance of one image (``person="all"``, the default, as HMR and SPIN do);
+persons with fewer than ``min_pixels`` visible mask pixels or fewer than ``min_visible`` visible
+keypoints are skipped. ``person="largest"`` gives one item per image instead: its person with the
+most visible pixels among those that pass the same filters.
+
+The crop is a square around the centre of the person's visible ``box`` (``box_full`` when nothing
+is visible) of side ``max(w, h) * box_scale * scale``, resized to ``crop x crop``. One affine map
+``A`` (3, 3) from original to crop pixel coordinates, pixel centres at integer + 0.5 in both, moves
+the image (bilinear), the person's mask and parts (nearest) and the keypoints; the in-plane rotation
+is the camera's rotation ``Rz`` about its z axis and the flip the mirror ``M = diag(-1, 1, 1)``, so
+with ``L = M Rz`` (``M = I`` without flip): ``keypoints_3d = L (X - X_pelvis)``, ``transl_cam = L
+X_pelvis``, ``global_orient = L R R_global M`` and ``K_crop = A K L^T``, so that ``K_crop
+(keypoints_3d + transl_cam)`` projects onto ``keypoints_2d`` exactly. A flip also swaps left and
+right keypoints (by name, :func:`blsm.skeleton.mirror_name`) and part labels, and mirrors the pose
+with the model's ``dof_mirror``. Because the DoF table makes every atom's mirrored range the signed
+image of its own (checked when the table is read), Eq. 6 commutes with the mirror and the
+unconstrained ``pose`` mirrors by the same permutation and signs as ``angles``, exactly; ``bone``
+and ``shape`` are kept (the model's shape spaces are left/right symmetric to 1 mm).
+
+Items (float32 unless stated): ``image`` (3, crop, crop) in [0, 1] (ImageNet-normalised with
+``normalize=True``), ``keypoints_2d`` (K, 3) crop pixels and visibility (visible in the image and
+inside the crop), ``keypoints_3d`` (K, 3) camera metres relative to the pelvis, ``pose`` (47,),
+``angles`` (47,) radians, ``bone`` (Kb,), ``shape`` (Ks,), ``global_orient`` (3,) camera-frame
+axis-angle, ``transl_cam`` (3,) metres, ``K_crop`` (3, 3), ``affine`` (3, 3) the map ``A``,
+``mask`` (crop, crop) bool, ``parts`` (crop, crop) int64 (0 background, 1 + ``PART_NAMES`` index),
+``index`` (sample index) and ``person`` (int64).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import tarfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, BinaryIO
+
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+from kornia.geometry.transform import warp_affine
+
+from blsm.skeleton import mirror_name
+from synth import format as fmt
+from synth.shards import FORMAT as SHARDS_FORMAT
+from synth.shards import MANIFEST
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+_ITEM_FIELDS = ("json", "rgb.png", "mask.png", "parts.png")
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Random crop augmentation (defaults after SPIN / HMR).
+
+    Attributes:
+        scale: the crop side is multiplied by a factor uniform in ``[1 - scale, 1 + scale]``.
+        rotation_deg: in-plane rotation uniform in ``[-rotation_deg, rotation_deg]`` degrees ...
+        rotation_prob: ... drawn with this probability (else 0).
+        flip_prob: probability of a horizontal mirror.
+        color: per-channel multiplicative colour factor uniform in ``[1 - color, 1 + color]``.
+        translation: crop centre shift, uniform in ``[-translation, translation]`` times the side.
+    """
+
+    scale: float = 0.25
+    rotation_deg: float = 30.0
+    rotation_prob: float = 0.6
+    flip_prob: float = 0.5
+    color: float = 0.4
+    translation: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.scale < 1 or not 0 <= self.color < 1 or self.rotation_deg < 0 or self.translation < 0:
+            raise ValueError(f"augment ranges must be non-negative (scale, color < 1), got {self}")
+        if not (0 <= self.rotation_prob <= 1 and 0 <= self.flip_prob <= 1):
+            raise ValueError(f"augment probabilities must be in [0, 1], got {self}")
+
+
+@dataclass(frozen=True)
+class CropParams:
+    """The augmentation of one item: scale factor, rotation (degrees, counter-clockwise on screen),
+    flip, centre shift (fraction of the side) and per-channel colour factors."""
+
+    scale: float = 1.0
+    rotation_deg: float = 0.0
+    flip: bool = False
+    shift: tuple[float, float] = (0.0, 0.0)
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+
+def draw_params(cfg: AugmentConfig | None, rng: np.random.Generator) -> CropParams:
+    """Draw one item's :class:`CropParams` (identity without ``cfg``)."""
+    if cfg is None:
+        return CropParams()
+    u = rng.uniform(size=8)
+    rot = (2 * u[1] - 1) * cfg.rotation_deg if u[2] < cfg.rotation_prob else 0.0
+    return CropParams(
+        scale=float(1 + (2 * u[0] - 1) * cfg.scale),
+        rotation_deg=float(rot),
+        flip=bool(u[3] < cfg.flip_prob),
+        shift=(float((2 * u[4] - 1) * cfg.translation), float((2 * u[5] - 1) * cfg.translation)),
+        color=tuple(float(c) for c in 1 + (2 * rng.uniform(size=3) - 1) * cfg.color),  # type: ignore[arg-type]
+    )
+
+
+def crop_affine(
+    center: Sequence[float], side: float, crop: int, rotation_deg: float = 0.0, flip: bool = False
+) -> np.ndarray:
+    """The map from original to crop pixel coordinates (both with pixel centres at integer + 0.5).
+
+    Args:
+        center: (2,) crop centre in original pixels; it maps to ``(crop / 2, crop / 2)``.
+        side: crop side in original pixels.
+        crop: output size in pixels.
+        rotation_deg: in-plane rotation of the content, counter-clockwise on screen, degrees.
+        flip: mirror the crop horizontally (``x -> crop - x``).
+
+    Returns:
+        (3, 3) float64 affine matrix ``A``; a point ``p`` maps to ``A [p, 1]``.
+    """
+    if side <= 0 or crop < 1:
+        raise ValueError(f"crop side and size must be positive, got {side}, {crop}")
+    k, a = crop / side, math.radians(rotation_deg)
+    c, s = math.cos(a), math.sin(a)
+    lin = k * np.array([[c, s], [-s, c]])
+    out = np.eye(3)
+    out[:2, :2] = lin
+    out[:2, 2] = crop / 2 - lin @ np.asarray(center, dtype=np.float64)
+    if flip:
+        out = np.array([[-1.0, 0.0, crop], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) @ out
+    return out
+
+
+def camera_rotation(rotation_deg: float, flip: bool) -> np.ndarray:
+    """``L = M Rz`` (3, 3): the camera-frame map matching :func:`crop_affine`'s rotation and flip."""
+    a = math.radians(rotation_deg)
+    c, s = math.cos(a), math.sin(a)
+    rz = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return np.diag([-1.0 if flip else 1.0, 1.0, 1.0]) @ rz
+
+
+def warp_to_crop(image: torch.Tensor, affine: np.ndarray, crop: int, mode: str = "bilinear") -> torch.Tensor:
+    """Warp (C, H, W) into (C, crop, crop) with :func:`crop_affine`'s ``A``; zeros outside.
+
+    kornia's ``warp_affine`` (``align_corners=True``) puts pixel centres at integers, so ``A`` is
+    conjugated by the half-pixel shift: output pixel ``(u, v)`` samples ``A^-1 (u + .5, v + .5) - .5``.
+    """
+    half = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    m = np.linalg.inv(half) @ affine @ half
+    mt = torch.as_tensor(m[None, :2], dtype=image.dtype)
+    return warp_affine(image[None], mt, (crop, crop), mode=mode, align_corners=True)[0]
+
+
+class DatasetIndex:
+    """The samples of a dataset folder and the byte ranges of their tar members.
+
+    Built from ``manifest.json`` and the shards' tar headers; :meth:`read` then reads one member with
+    one seek. File handles are opened lazily per process, so the index survives ``fork`` (DataLoader
+    workers) and pickling.
+
+    Raises:
+        ValueError: one line naming the file, on a missing folder or manifest, a manifest of another
+            format, an incomplete run (unless ``allow_incomplete``), a missing or truncated shard.
+    """
+
+    def __init__(self, path: str | Path, allow_incomplete: bool = False) -> None:
+        self.root = Path(path)
+        man_path = self.root / MANIFEST
+        if not man_path.is_file():
+            raise ValueError(f"{man_path}: no dataset manifest here")
+        try:
+            man = fmt.decode_json(man_path.read_bytes(), str(man_path))
+        except OSError as exc:
+            raise ValueError(f"{man_path}: unreadable ({exc.strerror})") from None
+        if not isinstance(man, dict) or man.get("format") != SHARDS_FORMAT:
+            raise ValueError(f"{man_path}: not a {SHARDS_FORMAT!r} manifest")
+        if not man.get("complete") and not allow_incomplete:
+            raise ValueError(f"{man_path}: the dataset is incomplete (generation unfinished)")
+        self.shards: list[Path] = []
+        self.samples: list[tuple[int, str, dict[str, tuple[int, int]]]] = []
+        for name, entry in sorted((man.get("shards") or {}).items()):
+            self._index_shard(len(self.shards), self.root / name, int(entry.get("samples", -1)))
+        self._pid = -1
+        self._files: dict[int, BinaryIO] = {}
+
+    def _index_shard(self, s: int, path: Path, expected: int) -> None:
+        if not path.is_file():
+            raise ValueError(f"{path}: shard listed in the manifest is missing")
+        size = path.stat().st_size
+        members: dict[str, dict[str, tuple[int, int]]] = {}
+        try:
+            with tarfile.open(path, mode="r:") as tar:
+                for m in tar:
+                    if m.isfile():
+                        if m.offset_data + m.size > size:
+                            raise ValueError(f"{path}: truncated shard (member {m.name} ends past the file)")
+                        key, _, name = m.name.partition(".")
+                        members.setdefault(key, {})[name] = (m.offset_data, m.size)
+        except (OSError, tarfile.TarError) as exc:
+            raise ValueError(f"{path}: not a readable shard ({exc})") from None
+        if expected >= 0 and len(members) != expected:
+            raise ValueError(f"{path}: holds {len(members)} samples, the manifest says {expected}")
+        self.shards.append(path)
+        self.samples.extend((s, key, fields) for key, fields in members.items())
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def where(self, i: int) -> str:
+        s, key, _ = self.samples[i]
+        return f"{self.shards[s]}:{key}"
+
+    def read(self, i: int, fields: Sequence[str]) -> dict[str, bytes]:
+        """The raw bytes of the given members of sample ``i`` (a ValueError names a missing one)."""
+        if os.getpid() != self._pid:  # a forked worker must not share the parent's file offsets
+            self._files, self._pid = {}, os.getpid()
+        s, key, members = self.samples[i]
+        fh = self._files.get(s)
+        if fh is None:
+            fh = self._files[s] = open(self.shards[s], "rb")  # noqa: SIM115 - kept open per worker
+        out = {}
+        for name in fields:
+            if name not in members:
+                raise ValueError(f"{self.where(i)}: sample has no {name!r} member")
+            offset, size = members[name]
+            fh.seek(offset)
+            out[name] = fh.read(size)
+            if len(out[name]) != size:
+                raise ValueError(f"{self.where(i)}.{name}: truncated member")
+        return out
+
+    def json(self, i: int) -> dict[str, Any]:
+        return fmt.decode_json(self.read(i, ("json",))["json"], f"{self.where(i)}.json")
+
+    def close(self) -> None:
+        """Close this process's open shard files (they reopen on the next read)."""
+        if self._pid == os.getpid():
+            for fh in self._files.values():
+                fh.close()
+        self._files = {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {**self.__dict__, "_files": {}, "_pid": -1}
+
+    def __del__(self) -> None:
+        if hasattr(self, "_files"):
+            self.close()
+
+
+@functools.cache
+def _model() -> Any:
+    import blsm
+
+    return blsm.load()
+
+
+def resolve_keypoints(names: Sequence[str], keypoints: str | Sequence[str]) -> list[int]:
+    """Indices into ``names`` of ``"all"``, a model keypoint set (``"coco17"``, ...) or a name list."""
+    if isinstance(keypoints, str) and keypoints == "all":
+        return list(range(len(names)))
+    if isinstance(keypoints, str):
+        sets = _model().keypoint_sets
+        if keypoints not in sets:
+            raise ValueError(f"unknown keypoint set {keypoints!r}; known: 'all', {sorted(sets)}")
+        keypoints = [_model().keypoint_names[k] for k in sets[keypoints]]
+    missing = [n for n in keypoints if n not in names]
+    if missing:
+        raise ValueError(f"keypoints {missing} are not in the dataset's keypoint_names")
+    return [list(names).index(n) for n in keypoints]
+
+
+def mirror_permutation(names: Sequence[str]) -> list[int]:
+    """``perm`` with ``names[perm[k]] == mirror_name(names[k])``; a missing partner is a ValueError."""
+    perm = []
+    for n in names:
+        partner = mirror_name(n)
+        if partner not in names:
+            raise ValueError(f"keypoint {n!r} has no mirror partner {partner!r} in the selection")
+        perm.append(list(names).index(partner))
+    return perm
+
+
+def mirror_rotation(rot: np.ndarray) -> np.ndarray:
+    """``M R M`` with ``M = diag(-1, 1, 1)``: a rotation seen in the x-mirrored world."""
+    m = np.diag([-1.0, 1.0, 1.0])
+    return m @ rot @ m
+
+
+def _aa_to_matrix(aa: Sequence[float]) -> np.ndarray:
+    return axis_angle_to_rotation_matrix(torch.tensor([aa], dtype=torch.float64))[0].numpy()
+
+
+def _matrix_to_aa(rot: np.ndarray) -> np.ndarray:
+    return rotation_matrix_to_axis_angle(torch.as_tensor(rot[None], dtype=torch.float64))[0].numpy()
+
+
+class SynthDataset(torch.utils.data.Dataset):
+    """Person crops with 2D/3D keypoints, BLSM parameters and masks (see the module docstring).
+
+    Args:
+        path: dataset folder (``manifest.json`` and ``shard-*.tar``).
+        crop: output side in pixels.
+        augment: random augmentation, or None for the plain centred crop.
+        person: ``"all"`` (one item per person instance) or ``"largest"`` (one item per image).
+        keypoints: ``"all"`` (every keypoint of the samples' ``keypoint_names``), a model keypoint
+            set (``"coco17"``, ``"blsm_joints"``) or a list of names; it must be closed under the
+            left/right mirror.
+        box_scale: crop side over the box's longer side before augmentation (1.2 as in SPIN).
+        min_pixels: skip persons with fewer visible mask pixels.
+        min_visible: skip persons with fewer visible selected keypoints.
+        normalize: subtract the ImageNet mean and divide by its standard deviation.
+        seed: None: fresh augmentation every call (from torch's RNG, which DataLoader seeds per
+            worker); an int: item ``i`` in epoch ``e`` (:meth:`set_epoch`) is a function of
+            ``(seed, e, i)``.
+        allow_incomplete: accept a manifest of an unfinished generation run.
+
+    Raises:
+        ValueError: one line naming the file, on a bad folder, manifest, shard or sample.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        crop: int = 224,
+        augment: AugmentConfig | None = None,
+        person: str = "all",
+        keypoints: str | Sequence[str] = "all",
+        *,
+        box_scale: float = 1.2,
+        min_pixels: int = 1,
+        min_visible: int = 0,
+        normalize: bool = False,
+        seed: int | None = None,
+        allow_incomplete: bool = False,
+    ) -> None:
+        if person not in ("all", "largest"):
+            raise ValueError(f"person must be 'all' or 'largest', got {person!r}")
+        if crop < 1 or box_scale <= 0:
+            raise ValueError(f"crop and box_scale must be positive, got {crop}, {box_scale}")
+        self.crop, self.augment, self.box_scale = int(crop), augment, float(box_scale)
+        self.normalize, self.seed, self.epoch = normalize, seed, 0
+        self.index = DatasetIndex(path, allow_incomplete)
+        self.items: list[tuple[int, int]] = []
+        names: list[str] | None = None
+        for i in range(len(self.index)):
+            meta = self.index.json(i)
+            try:
+                if names is None:
+                    names = list(meta["keypoint_names"])
+                    sel = resolve_keypoints(names, keypoints)
+                elif meta["keypoint_names"] != names:
+                    raise ValueError("keypoint_names differ from the first sample's")
+                people = meta["people"]
+                ok = [
+                    p
+                    for p, q in enumerate(people)
+                    if q["pixels"] >= min_pixels
+                    and int((np.asarray(q["visible"], bool) & np.asarray(q["in_frame"], bool))[sel].sum())
+                    >= min_visible
+                ]
+            except (KeyError, IndexError, TypeError, ValueError) as exc:
+                raise ValueError(f"{self.index.where(i)}.json: bad labels ({exc})") from None
+            if person == "largest" and ok:
+                ok = [max(ok, key=lambda p: people[p]["pixels"])]
+            self.items.extend((i, p) for p in ok)
+        if names is None:
+            raise ValueError(f"{self.index.root}: the dataset holds no samples")
+        if "pelvis" not in names:
+            raise ValueError(f"{self.index.root}: keypoint_names has no 'pelvis'")
+        self.keypoint_names = [names[k] for k in sel]
+        self._sel, self._pelvis = np.asarray(sel), names.index("pelvis")
+        self._kp_perm = np.asarray(mirror_permutation(self.keypoint_names))
+        self._part_swap = torch.tensor([0] + [1 + fmt.PART_NAMES.index(mirror_name(n)) for n in fmt.PART_NAMES])
+        perm, sign = _model().dof_mirror
+        self._dof_perm, self._dof_sign = perm.numpy().copy(), sign.numpy().astype(np.float64)
+        self.index.close()
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the epoch of seeded augmentation (takes effect in workers started afterwards)."""
+        self.epoch = int(epoch)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        if self.seed is not None:
+            rng = np.random.default_rng([self.seed, self.epoch, i])
+        else:
+            rng = np.random.default_rng(int(torch.randint(0, 2**62, ())))
+        return self.get(i, draw_params(self.augment, rng))
+
+    def get(self, i: int, params: CropParams) -> dict[str, torch.Tensor]:
+        """Item ``i`` with the given augmentation (``__getitem__`` draws ``params``)."""
+        s, p = self.items[i]
+        where = self.index.where(s)
+        raw = self.index.read(s, _ITEM_FIELDS)
+        meta = fmt.decode_json(raw["json"], f"{where}.json")
+        rgb = fmt.decode_png(raw["rgb.png"], f"{where}.rgb.png")
+        mask = fmt.decode_png(raw["mask.png"], f"{where}.mask.png")
+        parts = fmt.decode_png(raw["parts.png"], f"{where}.parts.png")
+        if rgb.ndim != 3 or mask.shape != rgb.shape[:2] or parts.shape != rgb.shape[:2]:
+            raise ValueError(f"{where}: image sizes differ: rgb {rgb.shape}, mask {mask.shape}, parts {parts.shape}")
+        try:
+            q, cam = meta["people"][p], meta["camera"]
+            box = q.get("box") or q["box_full"]
+            x0, y0, x1, y1 = (float(v) for v in box)
+            kp2 = np.asarray(q["keypoints_2d"], np.float64)[self._sel]
+            vis = (np.asarray(q["visible"], bool) & np.asarray(q["in_frame"], bool))[self._sel]
+            kp3 = np.asarray(q["keypoints_3d_cam"], np.float64)
+            kmat, rmat = np.asarray(cam["K"], np.float64), np.asarray(cam["R"], np.float64)
+            b = q["blsm"]
+            pose, angles = np.asarray(b["pose"], np.float64), np.asarray(b["angles"], np.float64)
+            orient = _aa_to_matrix(b["global_orient"])
+            bone, shape = b["bone"], b["shape"]
+            if pose.shape != self._dof_perm.shape or angles.shape != pose.shape or kmat.shape != (3, 3):
+                raise ValueError(f"pose/angles must be {self._dof_perm.shape}, K (3, 3)")
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}.json: bad labels of person {p} ({exc})") from None
+
+        side = max(x1 - x0, y1 - y0, 1.0) * self.box_scale * params.scale
+        center = ((x0 + x1) / 2 + params.shift[0] * side, (y0 + y1) / 2 + params.shift[1] * side)
+        amat = crop_affine(center, side, self.crop, params.rotation_deg, params.flip)
+        lmat = camera_rotation(params.rotation_deg, params.flip)
+        flip = np.diag([-1.0, 1.0, 1.0]) if params.flip else np.eye(3)
+
+        image = warp_to_crop(torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop)
+        image = (image * torch.tensor(params.color, dtype=torch.float32)[:, None, None]).clamp(0.0, 1.0)
+        if self.normalize:
+            image = (image - torch.tensor(IMAGENET_MEAN)[:, None, None]) / torch.tensor(IMAGENET_STD)[:, None, None]
+        own = mask == p + 1
+        labels = torch.from_numpy(np.stack([own, np.where(own, parts, 0)]).astype(np.float32))
+        labels = warp_to_crop(labels, amat, self.crop, mode="nearest")
+        part_map = labels[1].round().long()
+
+        uv = kp2 @ amat[:2, :2].T + amat[:2, 2]  # (K, 2)
+        vis &= (uv >= 0).all(1) & (uv < self.crop).all(1)
+        pelvis = kp3[self._pelvis]
+        rel = (kp3[self._sel] - pelvis) @ lmat.T  # (K, 3)
+        global_orient = _matrix_to_aa(lmat @ rmat @ orient @ flip)
+        if params.flip:
+            uv, vis, rel = uv[self._kp_perm], vis[self._kp_perm], rel[self._kp_perm]
+            part_map = self._part_swap[part_map]
+            pose = pose[self._dof_perm] * self._dof_sign
+            angles = angles[self._dof_perm] * self._dof_sign
+
+        def f32(x: Any) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(x, np.float64), dtype=torch.float32)
+
+        return {
+            "image": image,
+            "keypoints_2d": torch.cat([f32(uv), f32(vis)[:, None]], 1),
+            "keypoints_3d": f32(rel),
+            "pose": f32(pose),
+            "angles": f32(angles),
+            "bone": f32(bone),
+            "shape": f32(shape),
+            "global_orient": f32(global_orient),
+            "transl_cam": f32(lmat @ pelvis),
+            "K_crop": f32(amat @ kmat @ lmat.T),
+            "affine": f32(amat),
+            "mask": labels[0] > 0.5,
+            "parts": part_map,
+            "index": torch.tensor(int(meta.get("index", s))),
+            "person": torch.tensor(p),
+        }

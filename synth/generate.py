@@ -1,0 +1,562 @@
+"""The generator: subjects, poses, cameras and backgrounds to labelled images in shards.
+
+``generate(config, out, ...)`` makes ``out/subjects/`` (the people, once per dataset, from the seed)
+and then the shards. A sample's randomness is ``sample_rng(seed, index)`` only, so any worker can
+make any sample, and a resumed run makes the same dataset as an uninterrupted one. Each worker
+process loads the model, subjects and backgrounds once and keeps one Mitsuba scene per mesh
+topology, updated in place per image; a worker is replaced after ``render.recycle_after`` images.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import os
+import shutil
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from blsm.io import sha256_file
+from synth import backgrounds as bg
+from synth import format as fmt
+from synth import labels as lab
+from synth.camera import sample_camera
+from synth.config import GeneratorConfig
+from synth.render import PeopleRenderer, RenderMesh, linear_to_srgb, srgb_to_linear
+from synth.shards import ShardWriter, sample_rng, shard_name, write_shard
+from synth.subjects import Subject, anny_subject, load_subject, pose_subject, save_subject
+
+SUBJECTS = "subjects"
+
+
+def _log(msg: str) -> None:
+    print(f"[synth] {msg}", file=sys.stderr, flush=True)
+
+
+def versions() -> dict[str, str]:
+    import drjit
+    import mitsuba
+
+    import blsm
+
+    out = {"python": sys.version.split()[0], "numpy": np.__version__, "torch": torch.__version__}
+    out["mitsuba"], out["drjit"] = mitsuba.__version__, drjit.__version__
+    out["blsm"] = getattr(blsm, "__version__", "0.1.0")
+    return out
+
+
+def choose_variant(cfg: GeneratorConfig) -> str:
+    """The Mitsuba variant, once per run: the configured one, else cuda where a GPU is, else llvm."""
+    from blsm.render import choose_variant as probe
+
+    if cfg.render.variant:
+        return probe((cfg.render.variant,))
+    cands = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb") if shutil.which("nvidia-smi") else ("llvm_ad_rgb", "scalar_rgb")
+    return probe(cands)
+
+
+# ------------------------------------------------------------------------------------------------
+# Subjects
+
+
+def subject_rng(seed: int, i: int) -> np.random.Generator:
+    # A three-word seed sequence: never equal to a sample's (seed, index).
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), 1, int(i)])))
+
+
+def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
+    """Make (or reuse) ``out/subjects/*.npz`` and ``subjects/index.json``; return the files."""
+    folder = out / SUBJECTS
+    folder.mkdir(parents=True, exist_ok=True)
+    paths: list[Path] = []
+    skipped: list[dict[str, str]] = []
+    if cfg.subjects.source == "anny":
+        for i in range(cfg.subjects.count):
+            path = folder / f"anny_{i:04d}.npz"
+            if path.exists():
+                try:
+                    load_subject(path)
+                    paths.append(path)
+                    continue
+                except ValueError:
+                    pass  # damaged by an interruption: make it again
+            t0 = time.time()
+            s = anny_subject(model, path.stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size)
+            save_subject(s, path)
+            _log(f"subject {path.stem}: height {s.meta['height_m']:.2f} m, fit {s.meta['registration']['fit_mean_mm']:.1f} mm ({time.time() - t0:.0f} s)")
+            paths.append(path)
+    else:
+        from synth.scans import import_scans
+
+        subjects, skipped_pairs = import_scans(model, Path(cfg.subjects.folder), skip_bad=cfg.skip_bad)
+        skipped = [{"subject": n, "reason": r} for n, r in skipped_pairs]
+        for s in subjects:
+            paths.append(save_subject(s, folder / f"{s.id}.npz"))
+        if not paths:
+            raise ValueError(f"{cfg.subjects.folder}: no usable scan")
+    index = {"subjects": {p.stem: sha256_file(p) for p in paths}, "skipped": skipped}
+    (folder / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
+    return paths
+
+
+def subdivide(faces: np.ndarray, uv_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint subdivision: face ``f`` becomes faces ``4f .. 4f + 3``.
+
+    Returns:
+        (S, 2) the two parent vertices of every new vertex (a vertex of the input is its own two
+        parents), and (4F, 3) the new faces.
+    """
+    v = int(faces.max()) + 1
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 3, 2), axis=2).reshape(-1, 2)
+    uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+    mid = v + inv.reshape(-1, 3)  # (F, 3): midpoints of edges ab, bc, ca
+    a, b, c = faces.T
+    ab, bc, ca = mid.T
+    new = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)], 1)
+    parents = np.concatenate([np.stack([np.arange(v), np.arange(v)], 1), uniq])
+    return parents, new.reshape(-1, 3)
+
+
+# ------------------------------------------------------------------------------------------------
+# Poses
+
+
+class PoseSource:
+    """Draws a pose (x, global orientation) from the prior or the motion library."""
+
+    def __init__(self, cfg: GeneratorConfig) -> None:
+        from blsm.mocap.prior import load_prior
+
+        self.cfg = cfg.poses
+        self.prior = load_prior(self.cfg.prior) if self.cfg.prior else load_prior(Path(__file__).parents[1] / "blsm" / "data" / "pose_prior_cmu.npz")
+        self.clips: list[Any] = []
+        if self.cfg.source != "prior":
+            from blsm.mocap.library import list_clips, load_clip
+
+            files = list_clips(self.cfg.library)
+            if not files:
+                raise ValueError(f"{self.cfg.library}: the motion library holds no clips")
+            self.clips = [load_clip(f) for f in files]
+
+    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+        use_lib = self.cfg.source == "library" or (self.cfg.source == "mix" and rng.uniform() < self.cfg.library_rate)
+        if use_lib:
+            ci = int(rng.integers(len(self.clips)))
+            clip = self.clips[ci]
+            fr = int(rng.integers(clip.num_frames))
+            return clip.pose[fr].astype(np.float32), clip.global_orient[fr].astype(np.float32), {"source": "library", "clip": clip.name, "frame": fr}
+        g = torch.Generator().manual_seed(int(rng.integers(2**62)))
+        x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
+        return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1}
+
+
+def place_people(footprints: list[tuple[np.ndarray, float]], gap: float, rng: np.random.Generator) -> list[np.ndarray]:
+    """Horizontal offsets so that the people's footprint discs (centre, radius) stay ``gap`` apart."""
+    placed: list[tuple[np.ndarray, float]] = []
+    offsets = []
+    for centre, r in footprints:
+        pos = np.zeros(2)
+        if placed:
+            for _ in range(200):
+                ang = rng.uniform(0, 2 * math.pi)
+                ref, rr = placed[int(rng.integers(len(placed)))]
+                pos = ref + (rr + r + gap + rng.uniform(0.0, 0.8)) * np.array([math.cos(ang), math.sin(ang)])
+                if all(np.linalg.norm(pos - q) >= rq + r + gap for q, rq in placed):
+                    break
+            else:  # pragma: no cover - 8 people always fit in 200 tries
+                raise RuntimeError("could not place the people apart")
+        placed.append((pos, r))
+        offsets.append(np.array([pos[0] - centre[0], 0.0, pos[1] - centre[1]]))
+    return offsets
+
+
+# ------------------------------------------------------------------------------------------------
+# A worker's state
+
+
+class SampleMaker:
+    """Everything a worker needs to make samples: model, subjects, poses, backgrounds, scenes."""
+
+    def __init__(self, cfg: GeneratorConfig, out: Path, variant: str) -> None:
+        import blsm
+
+        self.cfg, self.out, self.variant = cfg, Path(out), variant
+        self.model = blsm.load()
+        index = json.loads((self.out / SUBJECTS / "index.json").read_text())
+        self.subjects: list[Subject] = [load_subject(self.out / SUBJECTS / f"{k}.npz") for k in sorted(index["subjects"])]
+        self.poses = PoseSource(cfg)
+        m = self.model
+        self.bone_to_part = lab.bone_parts(m.vertex_bones.numpy(), m.vertex_parts.numpy(), m.num_joints)
+        self.regions = lab.keypoint_regions(m.keypoint_joint.numpy(), m.keypoint_vertices.numpy(), m.vertex_bones.numpy(), m.parents)
+        self.is_joint = m.keypoint_joint.numpy() >= 0
+        b = cfg.background
+        self.bg_files = []
+        if b.kind == "hdri":
+            self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI")
+        elif b.kind == "images":
+            self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image")
+        self._bg_cache: dict[Path, np.ndarray] = {}
+        self._rigs: dict[int, dict[str, Any]] = {}
+        self._renderers: dict[tuple, PeopleRenderer] = {}
+
+    # -- per subject, cached: render mesh, linear texture, face bones
+    def rig(self, si: int) -> dict[str, Any]:
+        if si in self._rigs:
+            return self._rigs[si]
+        s, m, pipe = self.subjects[si], self.model, self.cfg.pipeline
+        if pipe == "blsm":
+            from synth.transfer import transfer_texture
+
+            faces, uv, fuv = m.faces.numpy(), m.uvs.numpy(), m.faces_uv.numpy()
+            tex = transfer_texture(s, m, min(self.cfg.subjects.texture_size, 1024))
+            weights = m.weights.numpy()
+            parents = None
+            if self.cfg.subdivide:
+                parents, faces_new = subdivide(faces)
+                uvp, fuv = subdivide(fuv)
+                uv = 0.5 * (uv[uvp[:, 0]] + uv[uvp[:, 1]])
+                weights = 0.5 * (weights[parents[:, 0]] + weights[parents[:, 1]])
+                faces = faces_new
+        else:
+            faces, uv, fuv, tex, weights, parents = s.faces, s.uv, s.faces_uv, s.texture, s.weights, None
+        rig = {
+            "mesh": RenderMesh.build(faces, uv, fuv),
+            "faces": faces,
+            "texture": srgb_to_linear(tex.astype(np.float32) / 255.0),
+            "face_bones": lab.face_bones(faces, weights),
+            "parents": parents,
+        }
+        self._rigs[si] = rig
+        return rig
+
+    def background(self, rng: np.random.Generator) -> bg.Background:
+        b, cam = self.cfg.background, self.cfg.camera
+        scale = float(2.0 ** rng.uniform(*b.exposure_ev))
+        rot = float(rng.uniform(0, 2 * math.pi))
+        if b.kind == "hdri":
+            f = self.bg_files[int(rng.integers(len(self.bg_files)))]
+            if f not in self._bg_cache:
+                self._bg_cache[f] = bg.load_hdri(f, b.env_width)
+            return bg.Background("hdri", self._bg_cache[f], rot, scale, None, {"file": f.name, "rotation": rot, "exposure": scale})
+        env, info = bg.procedural_sky(b.env_width, rng)
+        if b.kind == "images":
+            f = self.bg_files[int(rng.integers(len(self.bg_files)))]
+            if f not in self._bg_cache:
+                self._bg_cache[f] = bg.read_image(f)
+            plate = bg.crop_backplate(self._bg_cache[f], cam.width, cam.height, rng)
+            return bg.Background("images", env, rot, scale, plate, {"file": f.name, "rotation": rot, "exposure": scale, **info})
+        return bg.Background("default", env, rot, scale, None, {"rotation": rot, "exposure": scale, **info})
+
+    def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool) -> PeopleRenderer:
+        key = (tuple(m.key for m in meshes), tuple(t.shape for t in textures), backplate)
+        r = self._renderers.get(key)
+        if r is None:
+            if len(self._renderers) >= 4:
+                self._renderers.pop(next(iter(self._renderers)))
+            cam, b = self.cfg.camera, self.cfg.background
+            r = PeopleRenderer(
+                meshes, [t.shape[:2] for t in textures], cam.width, cam.height,
+                env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
+                max_depth=self.cfg.render.max_depth, backplate=backplate,
+            )  # fmt: skip
+            self._renderers[key] = r
+        return r
+
+    def make(self, index: int, rng: np.random.Generator) -> dict[str, bytes]:
+        cfg, m = self.cfg, self.model
+        n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
+        people: list[dict[str, Any]] = []
+        for _ in range(n):
+            si = int(rng.integers(len(self.subjects)))
+            s = self.subjects[si]
+            x, orient, motion = self.poses.sample(rng)
+            p = pose_subject(s, m, {"pose": x, "global_orient": orient, "transl": np.zeros(3, np.float32)}, cfg.pipeline)
+            rig = self.rig(si)
+            if rig["parents"] is not None:
+                par = rig["parents"]
+                p["vertices"] = 0.5 * (p["vertices"][par[:, 0]] + p["vertices"][par[:, 1]])
+            p.update(subject=s.id, si=si, motion=motion, rig=rig)
+            people.append(p)
+        foot = []
+        for p in people:
+            xz = p["vertices"][:, [0, 2]]
+            c = 0.5 * (xz.min(0) + xz.max(0))
+            foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
+        for p, d in zip(people, place_people(foot, cfg.people.gap, rng)):
+            d = d - np.array([0.0, p["vertices"][:, 1].min(), 0.0])  # feet on the floor y = 0
+            for k in ("vertices", "keypoints", "joints"):
+                p[k] = (p[k] + d).astype(np.float32)
+            p["transl"] = (p["transl"] + d).astype(np.float32)
+        camera, cam_info = sample_camera(np.concatenate([p["vertices"] for p in people]), cfg.camera, rng)
+        back = self.background(rng)
+        rigs = [p["rig"] for p in people]
+        r = self.renderer([q["mesh"] for q in rigs], [q["texture"] for q in rigs], back.backplate is not None)
+        seed = int(rng.integers(2**31))
+        frame = r.render(
+            [p["vertices"] for p in people], [q["texture"] for q in rigs], camera,
+            back.env, back.rotation, back.scale, back.backplate, cfg.render.spp, seed,
+        )  # fmt: skip
+        labels = lab.person_labels(
+            frame, camera,
+            [{"vertices": p["vertices"], "faces": q["faces"], "face_bones": q["face_bones"], "keypoints": p["keypoints"]} for p, q in zip(people, rigs)],
+            self.bone_to_part, self.regions, self.is_joint,
+        )  # fmt: skip
+        if labels["unassigned"]:
+            raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")
+        return self.encode(index, camera, cam_info, back, people, frame, labels)
+
+    def encode(self, index, camera, cam_info, back, people, frame, labels) -> dict[str, bytes]:
+        from blsm.joint_limits import unconstrained_from_angles
+
+        m = self.model
+        plist = []
+        for p, lp in zip(people, labels["people"]):
+            x = p["pose"]
+            if x is None:  # raw: the scan's own angles
+                x = unconstrained_from_angles(torch.as_tensor(p["angles"])[None], m.dof_limits)[0].numpy()
+            lengths = _bone_lengths(p["rest_joints"], p["keypoints"], m)
+            plist.append(
+                {
+                    "subject": p["subject"],
+                    "pipeline": self.cfg.pipeline,
+                    "motion": p["motion"],
+                    "blsm": {
+                        "pose": _l(x), "angles": _l(p["angles"]), "bone": _l(p["bone"]), "shape": _l(p["shape"]),
+                        "global_orient": _l(p["global_orient"]), "transl": _l(p["transl"]),
+                    },
+                    "bone_lengths": _l(lengths),
+                    "keypoints_3d": _l(p["keypoints"]),
+                    "keypoints_3d_cam": _l(lp["keypoints_3d_cam"]),
+                    "keypoints_2d": _l(lp["keypoints_2d"]),
+                    "visible": [bool(v) for v in lp["visible"]],
+                    "in_frame": [bool(v) for v in lp["in_frame"]],
+                    "box": lp["box"],
+                    "box_full": _l(lp["box_full"]),
+                    "pixels": lp["pixels"],
+                }
+            )  # fmt: skip
+        doc = {
+            "format": fmt.FORMAT,
+            "version": fmt.VERSION,
+            "index": index,
+            "seed": self.cfg.seed,
+            "image": {"width": camera.width, "height": camera.height, "pixel_center": 0.5},
+            "camera": {"K": _l(camera.K), "R": _l(camera.R), "t": _l(camera.t), "info": cam_info},
+            "background": {"kind": back.kind, **{k: (v if not isinstance(v, float) else round(v, 6)) for k, v in back.info.items()}},
+            "keypoint_names": list(m.keypoint_names),
+            "bone_names": list(m.bone_names),
+            "part_names": list(m.part_names),
+            "people": plist,
+        }
+        rgb = np.round(linear_to_srgb(frame.rgb) * 255.0).astype(np.uint8)
+        return {
+            "rgb.png": fmt.encode_png(rgb),
+            "json": fmt.encode_json(doc),
+            "mask.png": fmt.encode_png(labels["mask"]),
+            "parts.png": fmt.encode_png(labels["parts"], fmt.PART_PALETTE),
+            "bones.png": fmt.encode_png(labels["bones"], fmt.BONE_PALETTE),
+            "depth.exr": fmt.encode_exr(labels["depth"]),
+            "corr.npy.gz": fmt.encode_npy_gz(labels["corr"]),
+        }
+
+
+def _l(a: Any) -> Any:
+    """Array to nested lists of Python floats rounded to 1e-6 (stable JSON across runs)."""
+    return np.round(np.asarray(a, dtype=np.float64), 6).tolist()
+
+
+def _bone_lengths(rest_joints: np.ndarray, keypoints: np.ndarray, model: Any) -> np.ndarray:
+    """Per bone, metres: head to its primary child's head in the person's bind pose; leaf bones
+    (head, hands, feet) to their tip keypoint (head top, hand tip, toe tip)."""
+    from blsm import skeleton
+
+    names = model.bone_names
+    tips = {"head": "head_top", "wrist_l": "hand_tip_l", "wrist_r": "hand_tip_r", "ankle_l": "toe_tip_l", "ankle_r": "toe_tip_r"}
+    out = np.zeros(len(names))
+    for j, name in enumerate(names):
+        if name in tips:
+            # Tips are posed points; the leaf bone's length is pose-independent (rigid bone).
+            continue
+        c = names.index(skeleton.PRIMARY_CHILD[name])
+        out[j] = np.linalg.norm(rest_joints[c] - rest_joints[j])
+    kp = list(model.keypoint_names)
+    for name, tip in tips.items():
+        j = names.index(name)
+        out[j] = float(np.linalg.norm(keypoints[kp.index(tip)] - _posed_joint(keypoints, model, j)))
+    return out
+
+
+def _posed_joint(keypoints: np.ndarray, model: Any, j: int) -> np.ndarray:
+    k = list(model.keypoint_joint.numpy()).index(j)
+    return keypoints[k]
+
+
+# ------------------------------------------------------------------------------------------------
+# Workers and the run
+
+
+_MAKER: SampleMaker | None = None
+_QUEUE: Any = None
+
+
+def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int, queue: Any) -> None:
+    global _MAKER, _QUEUE
+    from synth.config import from_dict
+
+    torch.set_num_threads(1)
+    import drjit as dr
+
+    dr.set_thread_count(threads)
+    _MAKER = SampleMaker(from_dict(GeneratorConfig, cfg_dict), Path(out), variant)
+    _QUEUE = queue
+
+
+def _make_shard(args: tuple[int, list[int]]) -> tuple[int, str, int, list[dict]]:
+    shard, indices = args
+    assert _MAKER is not None
+    cfg = _MAKER.cfg
+    skipped: list[dict] = []
+
+    def samples():
+        for i in indices:
+            try:
+                fields = _MAKER.make(i, sample_rng(cfg.seed, i))
+            except Exception as exc:
+                if not cfg.skip_bad:
+                    raise RuntimeError(f"sample {i}: {exc}".splitlines()[0]) from exc
+                skipped.append({"index": i, "reason": f"{type(exc).__name__}: {exc}".splitlines()[0]})
+                fields = None
+            if _QUEUE is not None:
+                _QUEUE.put(1)
+            if fields is not None:
+                yield i, fields
+
+    path = _MAKER.out / shard_name(shard)
+    digest = write_shard(path, samples())
+    return shard, digest, len(indices) - len(skipped), skipped
+
+
+def generate(
+    cfg: GeneratorConfig,
+    out: str | Path,
+    workers: int = 1,
+    resume: bool = False,
+    progress: bool = True,
+    stop_after: int | None = None,
+) -> dict[str, Any]:
+    """Generate the dataset of ``cfg`` into ``out``; return the manifest.
+
+    Args:
+        cfg: the configuration (``cfg.num`` samples).
+        out: the dataset folder.
+        workers: worker processes (each renders whole shards).
+        resume: continue an interrupted run (keeps shards whose checksum matches).
+        progress: print a progress line with rate and ETA on stderr.
+        stop_after: stop after this many shards (tests).
+    """
+    import blsm
+
+    out = Path(out)
+    writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions())
+    todo, done = writer.pending(resume)
+    variant = choose_variant(cfg)
+    model = blsm.load()
+    prepare_subjects(cfg, out, model)
+    # Check the pose and background sources before any worker starts.
+    PoseSource(cfg)
+    if cfg.background.kind != "default":
+        bg.list_folder(cfg.background.folder, bg.HDRI_EXT if cfg.background.kind == "hdri" else bg.IMAGE_EXT, cfg.background.kind)
+    if stop_after is not None:
+        todo = todo[:stop_after]
+    total = sum(len(writer.indices(s)) for s in todo)
+    skipped_all: list[dict] = list((json.loads((out / "manifest.json").read_text()).get("skipped", [])) if resume and (out / "manifest.json").exists() else [])
+    skipped_all = [s for s in skipped_all if any(s["index"] in writer.indices(int(n[6:12])) for n in done)]
+    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
+    ctx = mp.get_context("spawn")
+    if not progress:
+        queue = None
+    elif workers <= 1:
+        import queue as _q
+
+        queue = _q.Queue()
+    else:
+        queue = ctx.Manager().Queue()
+    tasks = [(s, list(writer.indices(s))) for s in todo]
+    t0 = time.time()
+    made = 0
+    recycle = max(1, cfg.render.recycle_after // cfg.output.shard_size)
+    _log(f"{total} images in {len(todo)} shards -> {out} ({workers} worker{'s' * (workers > 1)}, Mitsuba {variant})")
+
+    def tick() -> None:
+        nonlocal made
+        if queue is None:
+            return
+        while not queue.empty():
+            queue.get()
+            made += 1
+        el = time.time() - t0
+        rate = made / el if el > 0 else 0.0
+        eta = (total - made) / rate if rate > 0 else float("nan")
+        line = f"{made}/{total} images  {rate:.2f} img/s  ETA {_hms(eta)}"
+        if sys.stderr.isatty():
+            print(f"\r[synth] {line}   ", end="", file=sys.stderr, flush=True)
+
+    def finish(res: tuple[int, str, int, list[dict]]) -> None:
+        shard, digest, count, skipped = res
+        done[shard_name(shard)] = {"sha256": digest, "samples": count, "first": writer.indices(shard).start}
+        skipped_all.extend(skipped)
+        man = writer._manifest(dict(sorted(done.items())))
+        man["skipped"] = sorted(skipped_all, key=lambda s: s["index"])
+        from synth.shards import _write_json_atomic
+
+        _write_json_atomic(out / "manifest.json", man)
+        if not sys.stderr.isatty():
+            _log(f"{shard_name(shard)}: {count} samples ({len(done)}/{writer.num_shards} shards)")
+
+    if workers <= 1:
+        _init_worker(asdict(cfg), str(out), variant, os.cpu_count() or 1, queue)
+        for t in tasks:
+            finish(_make_shard(t))
+            tick()
+    else:
+        with ctx.Pool(workers, initializer=_init_worker, initargs=(asdict(cfg), str(out), variant, threads, queue), maxtasksperchild=recycle) as pool:
+            pending = [pool.apply_async(_make_shard, (t,)) for t in tasks]
+            while pending:
+                for r in [r for r in pending if r.ready()]:
+                    pending.remove(r)
+                    finish(r.get())
+                tick()
+                time.sleep(0.2)
+    tick()
+    if sys.stderr.isatty():
+        print(file=sys.stderr)
+    man = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else writer._manifest(done)
+    el = time.time() - t0
+    _log(f"done: {sum(e['samples'] for e in done.values())} samples in {len(done)} shards, {_hms(el)}" + (f", {len(skipped_all)} skipped" if skipped_all else ""))
+    return man
+
+
+def _cfg_json(cfg: GeneratorConfig) -> dict:
+    return json.loads(json.dumps(asdict(cfg)))
+
+
+def _hms(s: float) -> str:
+    if not math.isfinite(s):
+        return "--"
+    s = int(s)
+    return f"{s // 3600}h{s % 3600 // 60:02d}m" if s >= 3600 else f"{s // 60}m{s % 60:02d}s"
+
+
+def format_error(exc: BaseException) -> str:
+    """One line for the command line."""
+    return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+
+

@@ -1,0 +1,392 @@
+"""Users' own scans as generator subjects: a folder per person, checked, registered and rigged.
+
+Folder format::
+
+    scans/
+      <subject>/                  one folder per subject; the folder name is the subject id
+        scan.obj | scan.ply | scan.glb   the scan mesh, metres, Y up, facing +Z (exactly one of these)
+                                        with a texture (OBJ+MTL map_Kd, GLB baseColorTexture; UVs required)
+                                        or per-vertex colours (PLY/OBJ/GLB)
+        registration.json | registration.npz   its BLSM registration, either
+            parameters: bone (Kb), shape (Ks), angles (47, radians) [or pose (47) unconstrained x],
+                        global_orient (3), transl (3), and displacement (Vb, 3) (npz; optional, zero if absent)
+        or registration.obj | registration.ply   a mesh in BLSM topology (same vertex count and faces as
+            the model) in the scan's pose: its parameters are fitted on import
+
+A scan with per-vertex colours gets a UV atlas (``xatlas``) and its colours baked into a texture, so
+every subject has UVs and a texture. Scans may have holes; non-manifold edges (more than two faces)
+or vertices (more than one fan of faces), degenerate faces, NaN or inf vertices, a texture file
+named by the MTL or GLB that does not exist, and a registration that does not fit the model are
+errors: one-line ``ValueError`` messages that start with the offending file's path.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from blsm import io as blsm_io
+from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
+from blsm.model import BLSM
+from synth.subjects import Subject, check_registration, rig_subject
+
+SCAN_SUFFIXES = (".obj", ".ply", ".glb")
+PARAM_SUFFIXES = (".json", ".npz")
+MESH_SUFFIXES = (".obj", ".ply")
+_PARAM_KEYS = ("bone", "shape", "angles", "pose", "global_orient", "transl", "displacement")
+
+
+def _one(folder: Path, stem: str, suffixes: tuple[str, ...]) -> Path:
+    """The single ``<stem><suffix>`` file of a subject folder."""
+    found = [folder / f"{stem}{s}" for s in suffixes if (folder / f"{stem}{s}").is_file()]
+    names = " | ".join(f"{stem}{s}" for s in suffixes)
+    if not found:
+        raise ValueError(f"{folder}: no {names} file")
+    if len(found) > 1:
+        raise ValueError(f"{folder}: more than one {stem} file ({', '.join(p.name for p in found)}), give one")
+    return found[0]
+
+
+def _check_texture_files(path: Path) -> None:
+    """Raise if the MTL or GLB names a texture file that does not exist (trimesh drops it silently)."""
+    if path.suffix == ".obj":
+        with open(path, errors="replace") as fh:
+            libs = [n for line in fh if line.startswith("mtllib") for n in line.split()[1:]]
+        for name in libs:
+            mtl = path.parent / name
+            if not mtl.is_file():
+                raise ValueError(f"{path}: mtllib names {name}, which does not exist")
+            for line in mtl.read_text(errors="replace").splitlines():
+                words = line.split()
+                if words and words[0] == "map_Kd" and len(words) > 1 and not (mtl.parent / words[-1]).is_file():
+                    raise ValueError(f"{mtl}: map_Kd names {words[-1]}, which does not exist")
+    elif path.suffix == ".glb":
+        with open(path, "rb") as fh:
+            head = fh.read(20)
+            if len(head) < 20 or head[:4] != b"glTF" or head[16:20] != b"JSON":
+                raise ValueError(f"{path}: not a binary glTF (.glb) file")
+            (n,) = struct.unpack("<I", head[12:16])
+            try:
+                gltf = json.loads(fh.read(n))
+            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+                raise ValueError(f"{path}: unreadable glTF JSON chunk ({exc})") from None
+        for image in gltf.get("images", []):
+            uri = image.get("uri", "")
+            if uri and not uri.startswith("data:") and not (path.parent / uri).is_file():
+                raise ValueError(f"{path}: image {uri} does not exist")
+
+
+def load_mesh(path: str | Path, keep_order: bool = False) -> Any:
+    """Read a mesh file with trimesh (a GLB scene is concatenated) and check it.
+
+    Args:
+        path: an ``.obj``, ``.ply`` or ``.glb`` file.
+        keep_order: keep an OBJ's vertex order (trimesh otherwise splits vertices at UV seams).
+
+    Returns:
+        A ``trimesh.Trimesh`` with finite vertices and manifold, non-degenerate faces.
+    """
+    import trimesh
+
+    path = Path(path)
+    _check_texture_files(path)
+    kw = {"maintain_order": True} if keep_order and path.suffix == ".obj" else {}
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False, **kw)
+        if isinstance(mesh, trimesh.Scene):
+            mesh = mesh.to_mesh()
+    except Exception as exc:  # trimesh's parsers raise many kinds of errors on bad files
+        raise ValueError(f"{path}: unreadable mesh ({type(exc).__name__}: {exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise ValueError(f"{path}: empty mesh (no triangles)")
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if not np.isfinite(v).all():
+        raise ValueError(f"{path}: vertex {int(np.flatnonzero(~np.isfinite(v).all(1))[0])} is NaN or inf")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ValueError(f"{path}: faces index outside [0, {len(v)})")
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2]) | (area <= 1e-14)
+    if bad.any():
+        raise ValueError(f"{path}: {int(bad.sum())} degenerate faces (repeated vertex or zero area), e.g. face {int(bad.argmax())}")
+    edges, counts = np.unique(np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), 1), axis=0, return_counts=True)
+    if (counts > 2).any():
+        a, b = edges[counts.argmax()]
+        raise ValueError(f"{path}: non-manifold: {int((counts > 2).sum())} edges shared by more than two faces, e.g. {a}-{b}")
+    nm = _non_manifold_vertices(f, len(v))
+    if len(nm):
+        raise ValueError(f"{path}: non-manifold: {len(nm)} vertices where separate sheets touch, e.g. vertex {nm[0]}")
+    return mesh
+
+
+def _non_manifold_vertices(faces: np.ndarray, n: int) -> np.ndarray:
+    """Vertices whose faces form more than one fan (bowties); holes (open fans) are fine."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    # Corner (v; a, b) joins the link nodes (v, a) and (v, b); one fan = one connected link.
+    v = faces.ravel().astype(np.int64)
+    a, b = np.roll(faces, -1, 1).ravel(), np.roll(faces, -2, 1).ravel()
+    nodes, inv = np.unique(np.concatenate([v * n + a, v * n + b]), return_inverse=True)
+    k = len(v)
+    graph = coo_matrix((np.ones(k), (inv[:k], inv[k:])), shape=(len(nodes), len(nodes)))
+    ncomp, label = connected_components(graph, directed=False)
+    owner = np.zeros(ncomp, np.int64)
+    owner[label] = nodes // n
+    return np.flatnonzero(np.bincount(owner, minlength=n) > 1)
+
+
+def bake_vertex_colours(
+    vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray, size: int = 1024
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A UV atlas (xatlas) and a texture with the vertex colours baked into it.
+
+    Args:
+        vertices: (V, 3); faces: (F, 3); colours: (V, 3) uint8 sRGB.
+        size: texture size in texels.
+
+    Returns:
+        uv (U, 2) (v up), faces_uv (F, 3) (face order kept) and texture (size, size, 3) uint8, row 0
+        at v = 1; texels outside every chart take the colour of the nearest texel inside one.
+    """
+    import xatlas
+    from scipy import ndimage
+
+    from synth.textures import _rasterise
+
+    vmap, faces_uv, uv = xatlas.parametrize(np.asarray(vertices, np.float32), np.asarray(faces, np.uint32))
+    faces_uv = faces_uv.astype(np.int64)
+    corner = np.asarray(colours, np.float64)[vmap][faces_uv]  # (F, 3, 3) colour of each face corner
+    texels, face, bary = _rasterise(uv, faces_uv, size)[:3]
+    image = np.zeros((size * size, 3))
+    image[texels] = np.einsum("nk,nkc->nc", bary, corner[face])
+    empty = np.ones(size * size, bool)
+    empty[texels] = False
+    # Dilation: every texel outside the charts copies its nearest inside texel, so that bilinear
+    # lookups and mip-maps near chart borders do not bleed the background in.
+    _, (iy, ix) = ndimage.distance_transform_edt(empty.reshape(size, size), return_indices=True)
+    image = image.reshape(size, size, 3)[iy, ix]
+    return uv.astype(np.float32), faces_uv, np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def load_scan(
+    folder: str | Path, texture_size: int = 1024
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read and check a subject folder's scan (or a scan file).
+
+    Args:
+        folder: the subject folder (or the scan file itself).
+        texture_size: texture size in texels when vertex colours are baked.
+
+    Returns:
+        vertices (V, 3) metres, faces (F, 3), uv (U, 2) v up, faces_uv (F, 3), texture (H, W, 3) uint8
+        sRGB with row 0 at v = 1 (trimesh's convention for both OBJ and GLB).
+    """
+    folder = Path(folder)
+    path = folder if folder.is_file() else _one(folder, "scan", SCAN_SUFFIXES)
+    mesh = load_mesh(path)
+    v, f = np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.int64)
+    visual = mesh.visual
+    uv = getattr(visual, "uv", None)
+    mat = getattr(visual, "material", None)
+    image = getattr(mat, "image", None)
+    image = getattr(mat, "baseColorTexture", None) if image is None else image
+    if uv is not None and image is not None:
+        uv = np.asarray(uv, np.float32)
+        if uv.shape != (len(v), 2) or not np.isfinite(uv).all():
+            raise ValueError(f"{path}: UVs must be finite, one per vertex, got {uv.shape} for {len(v)} vertices")
+        return v, f, uv, f.copy(), np.asarray(image.convert("RGB"), np.uint8)
+    if getattr(visual, "kind", None) == "vertex":
+        colours = np.asarray(visual.vertex_colors)[:, :3]
+        uv, faces_uv, texture = bake_vertex_colours(v, f, colours, texture_size)
+        return v, f, uv, faces_uv, texture
+    if image is not None:
+        raise ValueError(f"{path}: has a texture but no UVs")
+    raise ValueError(f"{path}: no texture or vertex colours (a textured mesh with UVs, or vertex colours)")
+
+
+# ------------------------------------------------------------------------------------------------
+# Registration
+
+
+def _read_parameters(model: BLSM, path: Path) -> dict[str, np.ndarray]:
+    if path.suffix == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{path}: unreadable registration JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: registration JSON must be an object of parameter arrays")
+    else:
+        data = blsm_io.read_npz(path, "registration")
+    unknown = sorted(set(data) - set(_PARAM_KEYS))
+    if unknown:
+        raise ValueError(f"{path}: unknown registration keys {unknown} (known: {', '.join(_PARAM_KEYS)})")
+    if ("pose" in data) == ("angles" in data):
+        raise ValueError(f"{path}: give exactly one of angles (radians) or pose (unconstrained x)")
+    try:
+        reg = {k: np.asarray(val, dtype=np.float32) for k, val in data.items()}
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: registration values must be numeric arrays ({exc})") from None
+    reg.setdefault("displacement", np.zeros((model.num_vertices, 3), np.float32))
+    lim = model.dof_limits.numpy()
+    if "pose" in reg:
+        x = reg.pop("pose")
+        if x.shape != (model.num_dofs,):
+            raise ValueError(f"{path}: registration 'pose' has shape {x.shape}, the model needs ({model.num_dofs},)")
+        reg["angles"] = angles_from_unconstrained(torch.as_tensor(x)[None], model.dof_limits)[0].numpy()
+    check_registration(model, reg, str(path))
+    a = reg["angles"]
+    out = (a < lim[:, 0] - 1e-5) | (a > lim[:, 1] + 1e-5)
+    if out.any():
+        i = int(out.argmax())
+        raise ValueError(f"{path}: angle {model.dof_names[i]} = {a[i]:.4f} rad is outside [{lim[i, 0]:.4f}, {lim[i, 1]:.4f}]")
+    reg["angles"] = np.clip(a, lim[:, 0], lim[:, 1]).astype(np.float32)
+    return reg
+
+
+def fit_posed_registration(
+    model: BLSM, target: np.ndarray, steps: tuple[int, int, int] = (60, 160, 280), lr: float = 0.05
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Fit BLSM to a posed body in its topology, then set displacements that reproduce it exactly.
+
+    Adam on the mean squared vertex distance in three stages: (1) ``global_orient`` and ``transl``
+    (started from a Kabsch alignment of the rest pose), (2) + the unconstrained pose x (Eq. 6),
+    (3) + bone and shape coefficients. The displacements are then ``D_i = A_i^-1 (target_i - b_i)
+    - T_i`` with the blended transform of vertex i (as :func:`synth.subjects.fit_registration`).
+
+    Args:
+        target: (Vb, 3) posed body in the model's topology, metres.
+        steps: Adam steps of the three stages.
+
+    Returns:
+        The registration (``angles`` in radians from the fitted x) and a report: ``fit_mean_mm`` and
+        ``fit_max_mm`` (vertex error before displacements), ``displaced_max_mm`` (after).
+    """
+    from scipy.spatial.transform import Rotation
+
+    tgt = torch.as_tensor(np.asarray(target), dtype=torch.float32)[None]
+    # Start near the rest pose but off the limits, where tanh would have no gradient.
+    x = unconstrained_from_angles(torch.zeros(1, model.num_dofs), model.dof_limits, eps=0.1).float()
+    with torch.no_grad():
+        rest = model(pose=x).vertices[0]
+        rot = Rotation.align_vectors((tgt[0] - tgt[0].mean(0)).numpy(), (rest - rest.mean(0)).numpy())[0]
+        orient = torch.tensor(rot.as_rotvec(), dtype=torch.float32)[None]
+        transl = tgt.mean(1) - model(pose=x, global_orient=orient).vertices.mean(1)
+    p = {
+        "global_orient": orient, "transl": transl, "pose": x,
+        "bone": torch.zeros(1, model.num_bone_coeffs), "shape": torch.zeros(1, model.num_shape_coeffs),
+    }
+    for t in p.values():
+        t.requires_grad_(True)
+    stages = (("global_orient", "transl"), ("global_orient", "transl", "pose"), tuple(p))
+    for names, n in zip(stages, steps):
+        opt = torch.optim.Adam([p[k] for k in names], lr=lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(n, 1), eta_min=lr * 0.02)
+        for _ in range(n):
+            opt.zero_grad()
+            loss = ((model(**p).vertices - tgt) ** 2).sum(-1).mean() * 1e4
+            if not torch.isfinite(loss):
+                raise ValueError("registration fit diverged (NaN loss)")
+            loss.backward()
+            opt.step()
+            sched.step()
+    with torch.no_grad():
+        out = model(**p)
+        err = (out.vertices - tgt).norm(dim=-1)[0].numpy() * 1000.0
+        tr = out.skinning_transforms[0].numpy().astype(np.float64)
+        w = model.weights.numpy().astype(np.float64)
+        a = np.einsum("vj,jab->vab", w, tr[:, :, :3])
+        b = w @ tr[:, :, 3]
+        goal = np.asarray(target, np.float64)
+        rest_pos = np.linalg.solve(a, (goal - b)[..., None])[..., 0]
+        disp = rest_pos - out.template[0].numpy()
+        after = np.linalg.norm(np.einsum("vab,vb->va", a, out.template[0].numpy() + disp) + b - goal, axis=1)
+    reg = {k: p[k].detach()[0].numpy() for k in ("bone", "shape", "global_orient", "transl")}
+    reg["angles"] = out.angles[0].numpy()
+    reg["displacement"] = disp
+    report = {"fit_mean_mm": float(err.mean()), "fit_max_mm": float(err.max()), "displaced_max_mm": float(after.max() * 1000)}
+    return {k: np.asarray(val, dtype=np.float32) for k, val in reg.items()}, report
+
+
+def load_registration(model: BLSM, folder: str | Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """A subject folder's registration (or a registration file): parameters, or fitted to a mesh.
+
+    Returns:
+        The registration (``bone``, ``shape``, ``angles`` radians, ``global_orient``, ``transl``,
+        ``displacement``) and its meta: ``source`` ("parameters" or "fitted mesh"), ``file``,
+        ``sha256`` and, for a fitted mesh, the fit report (``fit_mean_mm``: before displacements).
+    """
+    folder = Path(folder)
+    path = folder if folder.is_file() else _one(folder, "registration", PARAM_SUFFIXES + MESH_SUFFIXES)
+    meta: dict[str, Any] = {"file": str(path), "sha256": blsm_io.sha256_file(path)}
+    if path.suffix in PARAM_SUFFIXES:
+        return _read_parameters(model, path), {"source": "parameters", **meta}
+    mesh = load_mesh(path, keep_order=True)
+    if len(mesh.vertices) != model.num_vertices:
+        raise ValueError(
+            f"{path}: {len(mesh.vertices)} vertices, the model has {model.num_vertices} "
+            "(a registration mesh must be in BLSM topology)"
+        )
+    if not np.array_equal(np.asarray(mesh.faces), model.faces.numpy()):
+        raise ValueError(f"{path}: faces differ from the model's (a registration mesh must be in BLSM topology)")
+    try:
+        reg, report = fit_posed_registration(model, np.asarray(mesh.vertices))
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    check_registration(model, reg, str(path))
+    return reg, {"source": "fitted mesh", **meta, **report}
+
+
+# ------------------------------------------------------------------------------------------------
+# Import
+
+
+def import_scan(model: BLSM, folder: str | Path, texture_size: int = 1024) -> Subject:
+    """A subject from a scan folder (see the module docstring): checked, registered and rigged.
+
+    Args:
+        model: the BLSM model the registration belongs to.
+        folder: the subject folder; its name is the subject id.
+        texture_size: texture size in texels when vertex colours are baked.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: no such scan folder")
+    scan = _one(folder, "scan", SCAN_SUFFIXES)
+    vertices, faces, uv, faces_uv, texture = load_scan(scan, texture_size)
+    reg, reg_meta = load_registration(model, folder)
+    meta = {"source": "scan", "scan": str(scan), "scan_sha256": blsm_io.sha256_file(scan), "registration": reg_meta}
+    return rig_subject(model, folder.name, vertices, faces, uv, faces_uv, texture, reg, meta)
+
+
+def import_scans(
+    model: BLSM, root: str | Path, skip_bad: bool = False, texture_size: int = 1024
+) -> tuple[list[Subject], list[tuple[str, str]]]:
+    """All subject folders under ``root`` (sorted by name; hidden folders are ignored).
+
+    Args:
+        skip_bad: list a folder whose import fails instead of raising.
+
+    Returns:
+        The subjects and the skipped folders as (name, reason) pairs.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: no such scans folder")
+    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not folders:
+        raise ValueError(f"{root}: no subject folders")
+    subjects, skipped = [], []
+    for folder in folders:
+        try:
+            subjects.append(import_scan(model, folder, texture_size))
+        except ValueError as exc:
+            if not skip_bad:
+                raise
+            skipped.append((folder.name, str(exc)))
+    return subjects, skipped
