@@ -2,7 +2,7 @@
 
 - ``hdri``: a folder of latitude-longitude environment maps (``.exr``, ``.hdr``), read and resized
   with OpenImageIO. The environment is visible behind the people and lights them; each image draws
-  a rotation about +Y and an exposure. Maps are normalised to a mean luminance of 1 first, so one
+  a rotation about +Y and an exposure. Maps are normalised to a mean luminance of ``MEAN_LUMINANCE`` first, so one
   exposure range suits every file.
 - ``images``: a folder of backplates (``.jpg``, ``.jpeg``, ``.png``, ``.exr``, ``.hdr``, ``.tif``);
   each image draws one, crops it to the image's aspect at a random place and resizes it (OpenImageIO).
@@ -26,6 +26,7 @@ HDRI_EXT = (".exr", ".hdr")
 IMAGE_EXT = (".jpg", ".jpeg", ".png", ".exr", ".hdr", ".tif", ".tiff")
 KINDS = ("default", "hdri", "images")
 _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+MEAN_LUMINANCE = 0.4  # environments are scaled to this mean luminance before the exposure draw
 
 
 def list_folder(folder: str | Path, exts: tuple[str, ...], what: str) -> list[Path]:
@@ -67,7 +68,7 @@ def read_image(path: str | Path, width: int | None = None, height: int | None = 
 
 
 def load_hdri(path: str | Path, width: int) -> np.ndarray:
-    """An environment map resized to (width / 2, width), normalised to mean luminance 1."""
+    """An environment map resized to (width / 2, width), normalised to ``MEAN_LUMINANCE``."""
     env = read_image(path, width, width // 2)
     env = np.clip(env, 0.0, None)
     # Solid-angle weights of the rows of a latitude-longitude map.
@@ -76,7 +77,7 @@ def load_hdri(path: str | Path, width: int) -> np.ndarray:
     mean = float((env @ _LUMA * w).sum() / (w.sum() * env.shape[1]))
     if mean <= 0:
         raise ValueError(f"{path}: the environment map is black")
-    return (env / mean).astype(np.float32)
+    return (env * (MEAN_LUMINANCE / mean)).astype(np.float32)
 
 
 def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Generator) -> np.ndarray:
@@ -96,7 +97,7 @@ def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Ge
 
 
 def procedural_sky(width: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
-    """An embedded environment: sky gradient, sun disk and glow, coloured ground; mean luminance 1.
+    """An embedded environment: sky gradient, sun disk and glow, coloured ground; mean luminance ``MEAN_LUMINANCE``.
 
     Returns:
         (width / 2, width, 3) float32 linear RGB and the parameters drawn.
@@ -121,7 +122,7 @@ def procedural_sky(width: int, rng: np.random.Generator) -> tuple[np.ndarray, di
     theta_w = np.sin(theta)[:, None]
     mean = float(((env @ _LUMA) * theta_w).sum() / (theta_w.sum() * width))
     params = {"sun_elevation_deg": math.degrees(sun_el), "sun_azimuth_deg": math.degrees(sun_az)}
-    return (env / mean).astype(np.float32), params
+    return (env * (MEAN_LUMINANCE / mean)).astype(np.float32), params
 
 
 @dataclass

@@ -20,7 +20,7 @@ import numpy as np
 from blsm.render import Camera
 from synth.render import Frame
 
-SURFACE_TOL = 0.03  # metres
+SURFACE_TOL = 0.05  # metres
 JOINT_DEPTH = 0.3  # metres: no limb or trunk is thicker in front of its joint
 JOINT_BEHIND = 0.02  # metres: round-off allowance for a joint right at the surface
 HIT_TOL = 1e-3  # metres: a hit point this close to a person's face (plane distance) is on it

@@ -1,0 +1,233 @@
+"""``synth validate``: check every sample of a dataset against its own geometry.
+
+Per dataset: the manifest is readable and complete, every shard exists and its SHA-256 matches,
+every subject file matches ``subjects/index.json``.
+
+Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLSM parameters):
+
+- all fields are present and decode, and their sizes agree with ``image``;
+- ``keypoints_3d_cam = R keypoints_3d + t`` and ``keypoints_2d`` is their projection with ``K``
+  (1e-3 px) for keypoints in front of the camera; the rebuilt keypoints equal the stored ones;
+- visible keypoints are in frame and lie inside their person's mask;
+- ``box`` is the bounding box of the person's mask and holds its visible keypoints;
+- the mask matches the projected mesh: the union of the people's projected triangles, tested at
+  pixel centres, equals the foreground mask up to ``EDGE_PIXELS`` pixels on triangle edges;
+- every mask pixel's correspondence (face, barycentric) on the rebuilt mesh projects to the pixel's
+  centre (``REPROJ_PX``) at the stored depth (``DEPTH_M``); parts and bones agree with the mask.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from blsm.io import sha256_file
+from blsm.render import Camera
+from synth import format as fmt
+from synth.shards import MANIFEST, read_shard
+
+REPROJ_PX = 0.01
+KEYPOINT_PX = 1e-3
+DEPTH_M = 1e-4
+EDGE_PIXELS = 0.002  # fraction of the foreground area (at least 2 pixels)
+
+
+@dataclass
+class Report:
+    samples: int = 0
+    failures: list[str] = field(default_factory=list)
+
+    def fail(self, where: str, msg: str) -> None:
+        self.failures.append(f"{where}: {msg}")
+
+
+def coverage(verts2d: np.ndarray, faces: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) bool: pixel centres inside any of the projected triangles (either winding)."""
+    tri = verts2d[faces] - 0.5  # pixel (u, v) has its centre at (u + 0.5, v + 0.5)
+    lo = np.clip(np.ceil(tri.min(1)), 0, [width - 1, height - 1]).astype(np.int64)
+    hi = np.clip(np.floor(tri.max(1)), 0, [width - 1, height - 1]).astype(np.int64)
+    inside_img = (tri.max(1) >= 0).all(1) & (tri.min(1)[:, 0] <= width - 1) & (tri.min(1)[:, 1] <= height - 1)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    nx, ny = np.maximum(hi - lo + 1, 0).T
+    n = np.where((np.abs(det) > 1e-12) & inside_img, nx * ny, 0)
+    out = np.zeros(height * width, bool)
+    fid = np.repeat(np.arange(len(tri)), n)
+    if fid.size == 0:
+        return out.reshape(height, width)
+    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    cx, cy = lo[fid, 0] + k % nx[fid], lo[fid, 1] + k // nx[fid]
+    dx, dy = cx - tri[fid, 0, 0], cy - tri[fid, 0, 1]
+    b1 = (dx * e2[fid, 1] - dy * e2[fid, 0]) / det[fid]
+    b2 = (e1[fid, 0] * dy - e1[fid, 1] * dx) / det[fid]
+    ok = (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1)
+    out[cy[ok] * width + cx[ok]] = True
+    return out.reshape(height, width)
+
+
+class MeshRebuilder:
+    """Rebuilds a sample's posed meshes from ``subjects/`` and the stored parameters."""
+
+    def __init__(self, dataset: Path, config: dict[str, Any]) -> None:
+        import blsm
+        from synth.generate import subdivide
+        from synth.subjects import load_subject
+
+        self.model = blsm.load()
+        self.subjects: dict[str, Any] = {}
+        self.dataset = dataset
+        self.load = load_subject
+        self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
+        self.parents = subdivide(self.model.faces.numpy()) if self.subdivide else None
+
+    def mesh(self, person: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        from synth.subjects import pose_subject
+
+        sid = person["subject"]
+        if sid not in self.subjects:
+            self.subjects[sid] = self.load(self.dataset / "subjects" / f"{sid}.npz")
+        s = self.subjects[sid]
+        b = person["blsm"]
+        pipe = person["pipeline"]
+        params = {k: np.asarray(b[k], np.float32) for k in ("pose", "global_orient", "transl")}
+        out = pose_subject(s, self.model, params, pipe)
+        v, f, kp = out["vertices"], out["faces"], out["keypoints"]
+        if pipe == "raw":  # the scan as captured, moved to its place in the image
+            d = params["transl"] - s.registration["transl"]
+            v, kp = v + d, kp + d
+        if self.parents is not None:
+            par, f = self.parents
+            v = 0.5 * (v[par[:, 0]] + v[par[:, 1]])
+        return v.astype(np.float64), f, kp
+
+
+def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Report:
+    """Check a dataset folder; return a report (``failures`` empty when everything holds)."""
+    dataset = Path(dataset)
+    rep = Report()
+    man_path = dataset / MANIFEST
+    try:
+        man = json.loads(man_path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        rep.fail(str(man_path), f"unreadable manifest ({exc})")
+        return rep
+    if not man.get("complete"):
+        rep.fail(str(man_path), "the run is not complete (resume it with --resume)")
+    idx_path = dataset / "subjects" / "index.json"
+    try:
+        for sid, digest in json.loads(idx_path.read_text())["subjects"].items():
+            p = dataset / "subjects" / f"{sid}.npz"
+            if not p.is_file() or sha256_file(p) != digest:
+                rep.fail(str(p), "missing or its SHA-256 differs from subjects/index.json")
+    except (OSError, json.JSONDecodeError, KeyError) as exc:
+        rep.fail(str(idx_path), f"unreadable subject index ({exc})")
+    rebuild = MeshRebuilder(dataset, man.get("config", {}))
+    m = rebuild.model
+    from synth.labels import bone_parts
+
+    bone_to_part = bone_parts(m.vertex_bones.numpy(), m.vertex_parts.numpy(), m.num_joints)
+    for name, entry in sorted(man.get("shards", {}).items()):
+        path = dataset / name
+        if not path.is_file():
+            rep.fail(str(path), "missing shard")
+            continue
+        if sha256_file(path) != entry.get("sha256"):
+            rep.fail(str(path), "SHA-256 differs from the manifest")
+            continue
+        samples = read_shard(path)
+        if len(samples) != entry.get("samples"):
+            rep.fail(str(path), f"holds {len(samples)} samples, the manifest says {entry.get('samples')}")
+        for key, fields in sorted(samples.items()):
+            where = f"{name}:{key}"
+            rep.samples += 1
+            try:
+                _check_sample(where, fields, rebuild, bone_to_part, rep)
+            except ValueError as exc:
+                rep.fail(where, str(exc).splitlines()[0])
+            if log is not None and rep.samples % 50 == 0:
+                log(f"{rep.samples} samples checked, {len(rep.failures)} failures")
+            if len(rep.failures) >= max_failures:
+                rep.fail(str(dataset), f"stopped after {max_failures} failures")
+                return rep
+    return rep
+
+
+def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, bone_to_part: np.ndarray, rep: Report) -> None:
+    missing = [f for f in fmt.FIELDS if f not in fields]
+    if missing:
+        rep.fail(where, f"missing fields {missing}")
+        return
+    s = fmt.decode_sample(fields, where)
+    doc = s["json"]
+    w, h = doc["image"]["width"], doc["image"]["height"]
+    for k, shape in (("rgb", (h, w, 3)), ("mask", (h, w)), ("parts", (h, w)), ("bones", (h, w)), ("depth", (h, w)), ("corr", (h, w, 3))):
+        if s[k].shape != shape:
+            rep.fail(where, f"{k} has shape {s[k].shape}, expected {shape}")
+            return
+    cam = Camera(K=np.array(doc["camera"]["K"]), R=np.array(doc["camera"]["R"]), t=np.array(doc["camera"]["t"]), width=w, height=h)
+    mask, depth, corr = s["mask"], s["depth"], s["corr"]
+    fg = mask > 0
+    if not np.array_equal(fg, s["bones"] > 0) or not np.array_equal(fg, depth > 0):
+        rep.fail(where, "mask, bones and depth disagree on which pixels show a person")
+    ok_parts = np.where(fg, bone_to_part[np.maximum(s["bones"].astype(np.int64) - 1, 0)] + 1, 0)
+    if not np.array_equal(ok_parts, s["parts"]):
+        rep.fail(where, "parts do not follow the bones' parts")
+    union = np.zeros((h, w), bool)
+    for i, p in enumerate(doc["people"]):
+        pw = f"{where} person {i}"
+        kp3 = np.asarray(p["keypoints_3d"], np.float64)
+        kc = kp3 @ cam.R.T + cam.t
+        if np.abs(kc - np.asarray(p["keypoints_3d_cam"])).max() > 1e-5:
+            rep.fail(pw, "keypoints_3d_cam is not R keypoints_3d + t")
+        front = kc[:, 2] > 1e-6
+        kp2 = np.asarray(p["keypoints_2d"], np.float64)
+        err = np.abs(cam.project(kp3[front]) - kp2[front]).max() if front.any() else 0.0
+        if err > KEYPOINT_PX:
+            rep.fail(pw, f"keypoints_2d are not the projection of keypoints_3d ({err:.2e} px)")
+        sel = mask == i + 1
+        vis = np.asarray(p["visible"], bool)
+        if (vis & ~np.asarray(p["in_frame"], bool)).any():
+            rep.fail(pw, "a visible keypoint is not in frame")
+        px = np.floor(kp2[vis]).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+        if not inside.all() or not sel[px[:, 1], px[:, 0]].all():
+            rep.fail(pw, "a visible keypoint lies outside the person's mask")
+        if sel.any():
+            ys, xs = np.nonzero(sel)
+            box = [int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1]
+            if p["box"] != box:
+                rep.fail(pw, f"box {p['box']} is not the mask's box {box}")
+            if vis.any():
+                b = p["box"]
+                if not ((kp2[vis, 0] >= b[0]).all() and (kp2[vis, 0] <= b[2]).all() and (kp2[vis, 1] >= b[1]).all() and (kp2[vis, 1] <= b[3]).all()):
+                    rep.fail(pw, "box does not hold the visible keypoints")
+        elif p["box"] is not None or vis.any():
+            rep.fail(pw, "no mask pixels but a box or visible keypoints")
+        verts, faces, kp_re = rebuild.mesh(p)
+        if np.abs(kp_re - kp3).max() > 1e-4:
+            rep.fail(pw, f"keypoints_3d differ from the rebuilt body by {np.abs(kp_re - kp3).max() * 1000:.2f} mm")
+        vc = verts @ cam.R.T + cam.t
+        if (vc[:, 2] <= 1e-3).any():
+            continue  # a mesh crossing the camera plane cannot be projected as triangles
+        union |= coverage(cam.project(verts), faces, w, h)
+        if sel.any():
+            f = corr[..., 0][sel].astype(np.int64)
+            if f.min() < 0 or f.max() >= len(faces):
+                rep.fail(pw, "correspondence face index outside the mesh")
+                continue
+            bc = np.concatenate([1 - corr[..., 1:][sel].sum(1, keepdims=True), corr[..., 1:][sel]], 1)
+            pts = np.einsum("nkc,nk->nc", verts[faces[f]], bc)
+            ys, xs = np.nonzero(sel)
+            rerr = np.abs(cam.project(pts) - np.stack([xs + 0.5, ys + 0.5], 1)).max()
+            if rerr > REPROJ_PX:
+                rep.fail(pw, f"correspondences reproject {rerr:.3f} px from their pixel centres")
+            derr = np.abs((pts @ cam.R.T + cam.t)[:, 2] - depth[sel]).max()
+            if derr > DEPTH_M:
+                rep.fail(pw, f"depth differs from the correspondences by {derr * 1000:.3f} mm")
+    diff = int((union ^ fg).sum())
+    if diff > max(2, EDGE_PIXELS * fg.sum()):
+        rep.fail(where, f"the mask differs from the projected meshes in {diff} of {int(fg.sum())} pixels")
