@@ -54,7 +54,9 @@ from synth.shards import MANIFEST
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-_ITEM_FIELDS = ("json", "rgb.png", "mask.png", "parts.png")
+_MEAN, _STD = torch.tensor(IMAGENET_MEAN).view(3, 1, 1), torch.tensor(IMAGENET_STD).view(3, 1, 1)
+_FIELDS = ("json", "rgb.png", "mask.png", "parts.png")
+_PART_SWAP = torch.tensor([0] + [1 + fmt.PART_NAMES.index(mirror_name(n)) for n in fmt.PART_NAMES])
 
 
 @dataclass(frozen=True)
@@ -78,10 +80,9 @@ class AugmentConfig:
     translation: float = 0.05
 
     def __post_init__(self) -> None:
-        if not 0 <= self.scale < 1 or not 0 <= self.color < 1 or self.rotation_deg < 0 or self.translation < 0:
-            raise ValueError(f"augment ranges must be non-negative (scale, color < 1), got {self}")
-        if not (0 <= self.rotation_prob <= 1 and 0 <= self.flip_prob <= 1):
-            raise ValueError(f"augment probabilities must be in [0, 1], got {self}")
+        ok = 0 <= self.scale < 1 and 0 <= self.color < 1 and min(self.rotation_deg, self.translation) >= 0
+        if not (ok and 0 <= self.rotation_prob <= 1 and 0 <= self.flip_prob <= 1):
+            raise ValueError(f"augment ranges must be >= 0 (scale, color, probabilities <= 1), got {self}")
 
 
 @dataclass(frozen=True)
@@ -100,14 +101,14 @@ def draw_params(cfg: AugmentConfig | None, rng: np.random.Generator) -> CropPara
     """Draw one item's :class:`CropParams` (identity without ``cfg``)."""
     if cfg is None:
         return CropParams()
-    u = rng.uniform(size=8)
-    rot = (2 * u[1] - 1) * cfg.rotation_deg if u[2] < cfg.rotation_prob else 0.0
+    u = rng.uniform(size=9)
+    sym = (2 * u - 1).tolist()  # uniform in [-1, 1]
     return CropParams(
-        scale=float(1 + (2 * u[0] - 1) * cfg.scale),
-        rotation_deg=float(rot),
+        scale=1 + sym[0] * cfg.scale,
+        rotation_deg=sym[1] * cfg.rotation_deg if u[2] < cfg.rotation_prob else 0.0,
         flip=bool(u[3] < cfg.flip_prob),
-        shift=(float((2 * u[4] - 1) * cfg.translation), float((2 * u[5] - 1) * cfg.translation)),
-        color=tuple(float(c) for c in 1 + (2 * rng.uniform(size=3) - 1) * cfg.color),  # type: ignore[arg-type]
+        shift=(sym[4] * cfg.translation, sym[5] * cfg.translation),
+        color=(1 + sym[6] * cfg.color, 1 + sym[7] * cfg.color, 1 + sym[8] * cfg.color),
     )
 
 
@@ -128,12 +129,9 @@ def crop_affine(
     """
     if side <= 0 or crop < 1:
         raise ValueError(f"crop side and size must be positive, got {side}, {crop}")
-    k, a = crop / side, math.radians(rotation_deg)
-    c, s = math.cos(a), math.sin(a)
-    lin = k * np.array([[c, s], [-s, c]])
-    out = np.eye(3)
-    out[:2, :2] = lin
-    out[:2, 2] = crop / 2 - lin @ np.asarray(center, dtype=np.float64)
+    out = (crop / side) * camera_rotation(rotation_deg, False)
+    out[2] = [0.0, 0.0, 1.0]
+    out[:2, 2] = crop / 2 - out[:2, :2] @ np.asarray(center, dtype=np.float64)
     if flip:
         out = np.array([[-1.0, 0.0, crop], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) @ out
     return out
@@ -141,10 +139,8 @@ def crop_affine(
 
 def camera_rotation(rotation_deg: float, flip: bool) -> np.ndarray:
     """``L = M Rz`` (3, 3): the camera-frame map matching :func:`crop_affine`'s rotation and flip."""
-    a = math.radians(rotation_deg)
-    c, s = math.cos(a), math.sin(a)
-    rz = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    return np.diag([-1.0 if flip else 1.0, 1.0, 1.0]) @ rz
+    c, s = math.cos(math.radians(rotation_deg)), math.sin(math.radians(rotation_deg))
+    return np.diag([-1.0 if flip else 1.0, 1.0, 1.0]) @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def warp_to_crop(image: torch.Tensor, affine: np.ndarray, crop: int, mode: str = "bilinear") -> torch.Tensor:
@@ -168,11 +164,12 @@ class DatasetIndex:
 
     Raises:
         ValueError: one line naming the file, on a missing folder or manifest, a manifest of another
-            format, an incomplete run (unless ``allow_incomplete``), a missing or truncated shard.
+            format, an incomplete run (unless ``allow_incomplete``), a missing or truncated shard, or
+            a sample without the ``required`` members.
     """
 
-    def __init__(self, path: str | Path, allow_incomplete: bool = False) -> None:
-        self.root = Path(path)
+    def __init__(self, path: str | Path, allow_incomplete: bool = False, required: Sequence[str] = _FIELDS):
+        self.root, self.required = Path(path), tuple(required)
         man_path = self.root / MANIFEST
         if not man_path.is_file():
             raise ValueError(f"{man_path}: no dataset manifest here")
@@ -208,6 +205,10 @@ class DatasetIndex:
             raise ValueError(f"{path}: not a readable shard ({exc})") from None
         if expected >= 0 and len(members) != expected:
             raise ValueError(f"{path}: holds {len(members)} samples, the manifest says {expected}")
+        for key, fields in members.items():
+            missing = [f for f in self.required if f not in fields]
+            if missing:
+                raise ValueError(f"{path}: sample {key} lacks {missing} (truncated or not a synth dataset)")
         self.shards.append(path)
         self.samples.extend((s, key, fields) for key, fields in members.items())
 
@@ -225,7 +226,7 @@ class DatasetIndex:
         s, key, members = self.samples[i]
         fh = self._files.get(s)
         if fh is None:
-            fh = self._files[s] = open(self.shards[s], "rb")  # noqa: SIM115 - kept open per worker
+            fh = self._files[s] = open(self.shards[s], "rb")  # kept open: one per shard per process
         out = {}
         for name in fields:
             if name not in members:
@@ -250,9 +251,10 @@ class DatasetIndex:
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_files": {}, "_pid": -1}
 
-    def __del__(self) -> None:
-        if hasattr(self, "_files"):
-            self.close()
+
+def _seen(person: dict[str, Any]) -> np.ndarray:
+    """(K,) bool: the person's keypoints that are in frame and visible."""
+    return np.asarray(person["visible"], bool) & np.asarray(person["in_frame"], bool)
 
 
 @functools.cache
@@ -286,20 +288,6 @@ def mirror_permutation(names: Sequence[str]) -> list[int]:
             raise ValueError(f"keypoint {n!r} has no mirror partner {partner!r} in the selection")
         perm.append(list(names).index(partner))
     return perm
-
-
-def mirror_rotation(rot: np.ndarray) -> np.ndarray:
-    """``M R M`` with ``M = diag(-1, 1, 1)``: a rotation seen in the x-mirrored world."""
-    m = np.diag([-1.0, 1.0, 1.0])
-    return m @ rot @ m
-
-
-def _aa_to_matrix(aa: Sequence[float]) -> np.ndarray:
-    return axis_angle_to_rotation_matrix(torch.tensor([aa], dtype=torch.float64))[0].numpy()
-
-
-def _matrix_to_aa(rot: np.ndarray) -> np.ndarray:
-    return rotation_matrix_to_axis_angle(torch.as_tensor(rot[None], dtype=torch.float64))[0].numpy()
 
 
 class SynthDataset(torch.utils.data.Dataset):
@@ -359,13 +347,8 @@ class SynthDataset(torch.utils.data.Dataset):
                 elif meta["keypoint_names"] != names:
                     raise ValueError("keypoint_names differ from the first sample's")
                 people = meta["people"]
-                ok = [
-                    p
-                    for p, q in enumerate(people)
-                    if q["pixels"] >= min_pixels
-                    and int((np.asarray(q["visible"], bool) & np.asarray(q["in_frame"], bool))[sel].sum())
-                    >= min_visible
-                ]
+                ok = [p for p, q in enumerate(people) if q["pixels"] >= min_pixels]
+                ok = [p for p in ok if _seen(people[p])[sel].sum() >= min_visible]
             except (KeyError, IndexError, TypeError, ValueError) as exc:
                 raise ValueError(f"{self.index.where(i)}.json: bad labels ({exc})") from None
             if person == "largest" and ok:
@@ -378,7 +361,6 @@ class SynthDataset(torch.utils.data.Dataset):
         self.keypoint_names = [names[k] for k in sel]
         self._sel, self._pelvis = np.asarray(sel), names.index("pelvis")
         self._kp_perm = np.asarray(mirror_permutation(self.keypoint_names))
-        self._part_swap = torch.tensor([0] + [1 + fmt.PART_NAMES.index(mirror_name(n)) for n in fmt.PART_NAMES])
         perm, sign = _model().dof_mirror
         self._dof_perm, self._dof_sign = perm.numpy().copy(), sign.numpy().astype(np.float64)
         self.index.close()
@@ -391,65 +373,39 @@ class SynthDataset(torch.utils.data.Dataset):
         self.epoch = int(epoch)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        if self.seed is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, i])
-        else:
-            rng = np.random.default_rng(int(torch.randint(0, 2**62, ())))
+        seed = [self.seed, self.epoch, i] if self.seed is not None else int(torch.randint(0, 2**62, ()))
+        rng = np.random.default_rng(seed)
         return self.get(i, draw_params(self.augment, rng))
 
     def get(self, i: int, params: CropParams) -> dict[str, torch.Tensor]:
         """Item ``i`` with the given augmentation (``__getitem__`` draws ``params``)."""
         s, p = self.items[i]
-        where = self.index.where(s)
-        raw = self.index.read(s, _ITEM_FIELDS)
-        meta = fmt.decode_json(raw["json"], f"{where}.json")
-        rgb = fmt.decode_png(raw["rgb.png"], f"{where}.rgb.png")
-        mask = fmt.decode_png(raw["mask.png"], f"{where}.mask.png")
-        parts = fmt.decode_png(raw["parts.png"], f"{where}.parts.png")
-        if rgb.ndim != 3 or mask.shape != rgb.shape[:2] or parts.shape != rgb.shape[:2]:
-            raise ValueError(f"{where}: image sizes differ: rgb {rgb.shape}, mask {mask.shape}, parts {parts.shape}")
-        try:
-            q, cam = meta["people"][p], meta["camera"]
-            box = q.get("box") or q["box_full"]
-            x0, y0, x1, y1 = (float(v) for v in box)
-            kp2 = np.asarray(q["keypoints_2d"], np.float64)[self._sel]
-            vis = (np.asarray(q["visible"], bool) & np.asarray(q["in_frame"], bool))[self._sel]
-            kp3 = np.asarray(q["keypoints_3d_cam"], np.float64)
-            kmat, rmat = np.asarray(cam["K"], np.float64), np.asarray(cam["R"], np.float64)
-            b = q["blsm"]
-            pose, angles = np.asarray(b["pose"], np.float64), np.asarray(b["angles"], np.float64)
-            orient = _aa_to_matrix(b["global_orient"])
-            bone, shape = b["bone"], b["shape"]
-            if pose.shape != self._dof_perm.shape or angles.shape != pose.shape or kmat.shape != (3, 3):
-                raise ValueError(f"pose/angles must be {self._dof_perm.shape}, K (3, 3)")
-        except (KeyError, IndexError, TypeError, ValueError) as exc:
-            raise ValueError(f"{where}.json: bad labels of person {p} ({exc})") from None
-
+        rgb, own, parts, lab = self._read(s, p)
+        x0, y0, x1, y1 = lab["box"]
         side = max(x1 - x0, y1 - y0, 1.0) * self.box_scale * params.scale
         center = ((x0 + x1) / 2 + params.shift[0] * side, (y0 + y1) / 2 + params.shift[1] * side)
         amat = crop_affine(center, side, self.crop, params.rotation_deg, params.flip)
         lmat = camera_rotation(params.rotation_deg, params.flip)
-        flip = np.diag([-1.0, 1.0, 1.0]) if params.flip else np.eye(3)
+        mirror = np.diag([-1.0 if params.flip else 1.0, 1.0, 1.0])
 
-        image = warp_to_crop(torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop)
-        image = (image * torch.tensor(params.color, dtype=torch.float32)[:, None, None]).clamp(0.0, 1.0)
+        image = warp_to_crop(torch.tensor(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop)
+        image = (image * torch.tensor(params.color).view(3, 1, 1)).clamp(0.0, 1.0)
         if self.normalize:
-            image = (image - torch.tensor(IMAGENET_MEAN)[:, None, None]) / torch.tensor(IMAGENET_STD)[:, None, None]
-        own = mask == p + 1
+            image = (image - _MEAN) / _STD
         labels = torch.from_numpy(np.stack([own, np.where(own, parts, 0)]).astype(np.float32))
         labels = warp_to_crop(labels, amat, self.crop, mode="nearest")
         part_map = labels[1].round().long()
 
-        uv = kp2 @ amat[:2, :2].T + amat[:2, 2]  # (K, 2)
-        vis &= (uv >= 0).all(1) & (uv < self.crop).all(1)
-        pelvis = kp3[self._pelvis]
-        rel = (kp3[self._sel] - pelvis) @ lmat.T  # (K, 3)
-        global_orient = _matrix_to_aa(lmat @ rmat @ orient @ flip)
+        uv = lab["kp2"] @ amat[:2, :2].T + amat[:2, 2]  # (K, 2)
+        vis = lab["vis"] & (uv >= 0).all(1) & (uv < self.crop).all(1)
+        pelvis = lab["kp3"][self._pelvis]
+        rel = (lab["kp3"][self._sel] - pelvis) @ lmat.T  # (K, 3)
+        orient = lmat @ lab["R"] @ lab["orient"] @ mirror
+        pose, angles = lab["pose"], lab["angles"]
         if params.flip:
             uv, vis, rel = uv[self._kp_perm], vis[self._kp_perm], rel[self._kp_perm]
-            part_map = self._part_swap[part_map]
-            pose = pose[self._dof_perm] * self._dof_sign
-            angles = angles[self._dof_perm] * self._dof_sign
+            part_map = _PART_SWAP[part_map]
+            pose, angles = pose[self._dof_perm] * self._dof_sign, angles[self._dof_perm] * self._dof_sign
 
         def f32(x: Any) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x, np.float64), dtype=torch.float32)
@@ -460,14 +416,49 @@ class SynthDataset(torch.utils.data.Dataset):
             "keypoints_3d": f32(rel),
             "pose": f32(pose),
             "angles": f32(angles),
-            "bone": f32(bone),
-            "shape": f32(shape),
-            "global_orient": f32(global_orient),
+            "bone": f32(lab["bone"]),
+            "shape": f32(lab["shape"]),
+            "global_orient": f32(rotation_matrix_to_axis_angle(torch.from_numpy(orient)[None])[0]),
             "transl_cam": f32(lmat @ pelvis),
-            "K_crop": f32(amat @ kmat @ lmat.T),
+            "K_crop": f32(amat @ lab["K"] @ lmat.T),
             "affine": f32(amat),
             "mask": labels[0] > 0.5,
             "parts": part_map,
-            "index": torch.tensor(int(meta.get("index", s))),
+            "index": torch.tensor(lab["index"]),
             "person": torch.tensor(p),
         }
+
+    def _read(self, s: int, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """Sample ``s``'s image (H, W, 3), person ``p``'s mask (H, W) bool, the parts (H, W) and labels."""
+        where = self.index.where(s)
+        raw = self.index.read(s, _FIELDS)
+        meta = fmt.decode_json(raw["json"], f"{where}.json")
+        rgb = fmt.decode_png(raw["rgb.png"], f"{where}.rgb.png")
+        mask = fmt.decode_png(raw["mask.png"], f"{where}.mask.png")
+        parts = fmt.decode_png(raw["parts.png"], f"{where}.parts.png")
+        if rgb.ndim != 3 or mask.shape != rgb.shape[:2] or parts.shape != rgb.shape[:2]:
+            raise ValueError(f"{where}: image sizes differ: {rgb.shape}, {mask.shape}, {parts.shape}")
+        try:
+            q, cam, b = meta["people"][p], meta["camera"], meta["people"][p]["blsm"]
+            orient = torch.tensor([b["global_orient"]], dtype=torch.float64)
+            lab = {
+                "box": [float(v) for v in (q.get("box") or q["box_full"])],
+                "kp2": np.asarray(q["keypoints_2d"], np.float64)[self._sel],
+                "vis": _seen(q)[self._sel],
+                "kp3": np.asarray(q["keypoints_3d_cam"], np.float64),
+                "K": np.asarray(cam["K"], np.float64),
+                "R": np.asarray(cam["R"], np.float64),
+                "orient": axis_angle_to_rotation_matrix(orient)[0].numpy(),
+                "pose": np.asarray(b["pose"], np.float64),
+                "angles": np.asarray(b["angles"], np.float64),
+                "bone": b["bone"],
+                "shape": b["shape"],
+                "index": int(meta["index"]),
+            }
+            if lab["pose"].shape != self._dof_perm.shape or lab["angles"].shape != self._dof_perm.shape:
+                raise ValueError(f"pose and angles must be {self._dof_perm.shape}")
+            if lab["K"].shape != (3, 3) or lab["R"].shape != (3, 3) or len(lab["box"]) != 4:
+                raise ValueError("camera K and R must be 3x3 and box 4 numbers")
+        except (KeyError, IndexError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}.json: bad labels of person {p} ({exc})") from None
+        return rgb, mask == p + 1, parts, lab

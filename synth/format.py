@@ -153,6 +153,8 @@ def encode_exr(depth: np.ndarray) -> bytes:
     spec = oiio.ImageSpec(depth.shape[1], depth.shape[0], 1, "float")
     spec.channelnames = ("Z",)
     spec.attribute("compression", "zip")
+    # OpenImageIO stamps the current time otherwise; a fixed one keeps shards byte-reproducible.
+    spec.attribute("DateTime", "1970:01:01 00:00:00")
     fd, tmp = tempfile.mkstemp(suffix=".exr")
     os.close(fd)
     try:

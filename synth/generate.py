@@ -80,13 +80,10 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
     if cfg.subjects.source == "anny":
         for i in range(cfg.subjects.count):
             path = folder / f"anny_{i:04d}.npz"
-            if path.exists():
-                try:
-                    load_subject(path)
-                    paths.append(path)
-                    continue
-                except ValueError:
-                    pass  # damaged by an interruption: make it again
+            if path.exists():  # written atomically, so complete: a damaged one is an error
+                load_subject(path)
+                paths.append(path)
+                continue
             t0 = time.time()
             s = anny_subject(model, path.stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size)
             save_subject(s, path)
@@ -466,13 +463,15 @@ def generate(
     out = Path(out)
     writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions())
     todo, done = writer.pending(resume)
+    # Check the pose and background sources before anything is made.
+    PoseSource(cfg)
+    if cfg.background.kind == "hdri":
+        bg.list_folder(cfg.background.folder, bg.HDRI_EXT, "HDRI")
+    elif cfg.background.kind == "images":
+        bg.list_folder(cfg.background.folder, bg.IMAGE_EXT, "background image")
     variant = choose_variant(cfg)
     model = blsm.load()
     prepare_subjects(cfg, out, model)
-    # Check the pose and background sources before any worker starts.
-    PoseSource(cfg)
-    if cfg.background.kind != "default":
-        bg.list_folder(cfg.background.folder, bg.HDRI_EXT if cfg.background.kind == "hdri" else bg.IMAGE_EXT, cfg.background.kind)
     if stop_after is not None:
         todo = todo[:stop_after]
     total = sum(len(writer.indices(s)) for s in todo)

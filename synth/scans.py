@@ -2,16 +2,16 @@
 
 Folder format::
 
-    scans/
-      <subject>/                  one folder per subject; the folder name is the subject id
-        scan.obj | scan.ply | scan.glb   the scan mesh, metres, Y up, facing +Z (exactly one of these)
-                                        with a texture (OBJ+MTL map_Kd, GLB baseColorTexture; UVs required)
-                                        or per-vertex colours (PLY/OBJ/GLB)
-        registration.json | registration.npz   its BLSM registration, either
-            parameters: bone (Kb), shape (Ks), angles (47, radians) [or pose (47) unconstrained x],
-                        global_orient (3), transl (3), and displacement (Vb, 3) (npz; optional, zero if absent)
-        or registration.obj | registration.ply   a mesh in BLSM topology (same vertex count and faces as
-            the model) in the scan's pose: its parameters are fitted on import
+  scans/
+    <subject>/                  one folder per subject; the folder name is the subject id
+      scan.obj | scan.ply | scan.glb   the scan mesh, metres, Y up, facing +Z (exactly one of these)
+                                      with a texture (OBJ+MTL map_Kd, GLB baseColorTexture; UVs required)
+                                      or per-vertex colours (PLY/OBJ/GLB)
+      registration.json | registration.npz   its BLSM registration, either
+          parameters: bone (Kb), shape (Ks), angles (47, radians) [or pose (47) unconstrained x],
+                      global_orient (3), transl (3), and displacement (Vb, 3) (npz; optional, zero if absent)
+      or registration.obj | registration.ply   a mesh in BLSM topology (same vertex count and faces as
+          the model) in the scan's pose: its parameters are fitted on import
 
 A scan with per-vertex colours gets a UV atlas (``xatlas``) and its colours baked into a texture, so
 every subject has UVs and a texture. Scans may have holes; non-manifold edges (more than two faces)
@@ -32,6 +32,7 @@ import torch
 
 from blsm import io as blsm_io
 from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
+from blsm.kinematics import joint_rotations
 from blsm.model import BLSM
 from synth.subjects import Subject, check_registration, rig_subject
 
@@ -48,7 +49,7 @@ def _one(folder: Path, stem: str, suffixes: tuple[str, ...]) -> Path:
     if not found:
         raise ValueError(f"{folder}: no {names} file")
     if len(found) > 1:
-        raise ValueError(f"{folder}: more than one {stem} file ({', '.join(p.name for p in found)}), give one")
+        raise ValueError(f"{folder}: more than one {stem} file ({', '.join(p.name for p in found)})")
     return found[0]
 
 
@@ -63,7 +64,7 @@ def _check_texture_files(path: Path) -> None:
                 raise ValueError(f"{path}: mtllib names {name}, which does not exist")
             for line in mtl.read_text(errors="replace").splitlines():
                 words = line.split()
-                if words and words[0] == "map_Kd" and len(words) > 1 and not (mtl.parent / words[-1]).is_file():
+                if len(words) > 1 and words[0] == "map_Kd" and not (mtl.parent / words[-1]).is_file():
                     raise ValueError(f"{mtl}: map_Kd names {words[-1]}, which does not exist")
     elif path.suffix == ".glb":
         with open(path, "rb") as fh:
@@ -109,17 +110,20 @@ def load_mesh(path: str | Path, keep_order: bool = False) -> Any:
         raise ValueError(f"{path}: vertex {int(np.flatnonzero(~np.isfinite(v).all(1))[0])} is NaN or inf")
     if f.min() < 0 or f.max() >= len(v):
         raise ValueError(f"{path}: faces index outside [0, {len(v)})")
+    # Topology is checked on the welded mesh: loaders split vertices at UV seams (OBJ, GLB).
+    _, first, inverse = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    f = first[inverse.ravel()][f]
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     bad = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2]) | (area <= 1e-14)
     if bad.any():
-        raise ValueError(f"{path}: {int(bad.sum())} degenerate faces (repeated vertex or zero area), e.g. face {int(bad.argmax())}")
+        raise ValueError(f"{path}: {int(bad.sum())} degenerate (zero-area) faces, e.g. {int(bad.argmax())}")
     edges, counts = np.unique(np.sort(f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), 1), axis=0, return_counts=True)
     if (counts > 2).any():
         a, b = edges[counts.argmax()]
-        raise ValueError(f"{path}: non-manifold: {int((counts > 2).sum())} edges shared by more than two faces, e.g. {a}-{b}")
+        raise ValueError(f"{path}: non-manifold: {int((counts > 2).sum())} edges in 3+ faces, e.g. {a}-{b}")
     nm = _non_manifold_vertices(f, len(v))
     if len(nm):
-        raise ValueError(f"{path}: non-manifold: {len(nm)} vertices where separate sheets touch, e.g. vertex {nm[0]}")
+        raise ValueError(f"{path}: non-manifold: {len(nm)} vertices joining separate fans, e.g. {nm[0]}")
     return mesh
 
 
@@ -198,7 +202,7 @@ def load_scan(
     if uv is not None and image is not None:
         uv = np.asarray(uv, np.float32)
         if uv.shape != (len(v), 2) or not np.isfinite(uv).all():
-            raise ValueError(f"{path}: UVs must be finite, one per vertex, got {uv.shape} for {len(v)} vertices")
+            raise ValueError(f"{path}: UVs must be finite, one per vertex, got {uv.shape} for {len(v)}")
         return v, f, uv, f.copy(), np.asarray(image.convert("RGB"), np.uint8)
     if getattr(visual, "kind", None) == "vertex":
         colours = np.asarray(visual.vertex_colors)[:, :3]
@@ -237,79 +241,136 @@ def _read_parameters(model: BLSM, path: Path) -> dict[str, np.ndarray]:
     if "pose" in reg:
         x = reg.pop("pose")
         if x.shape != (model.num_dofs,):
-            raise ValueError(f"{path}: registration 'pose' has shape {x.shape}, the model needs ({model.num_dofs},)")
+            raise ValueError(f"{path}: registration 'pose' has shape {x.shape}, the model needs (47,)")
         reg["angles"] = angles_from_unconstrained(torch.as_tensor(x)[None], model.dof_limits)[0].numpy()
     check_registration(model, reg, str(path))
     a = reg["angles"]
     out = (a < lim[:, 0] - 1e-5) | (a > lim[:, 1] + 1e-5)
     if out.any():
         i = int(out.argmax())
-        raise ValueError(f"{path}: angle {model.dof_names[i]} = {a[i]:.4f} rad is outside [{lim[i, 0]:.4f}, {lim[i, 1]:.4f}]")
+        raise ValueError(f"{path}: angle {model.dof_names[i]} = {a[i]:.4f} rad is outside {lim[i].round(4)}")
     reg["angles"] = np.clip(a, lim[:, 0], lim[:, 1]).astype(np.float32)
     return reg
 
 
+def _initial_pose(model: BLSM, target: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Global orientation (1, 3) and pose x (1, 47) from the rotation of each bone's rigid core."""
+    from scipy.spatial.transform import Rotation
+
+    rest, w = model.template.double().numpy(), model.weights.double().numpy()
+    rots = []
+    for j in range(model.num_joints):  # Kabsch of the vertices bone j dominates, rest -> target
+        sel = np.flatnonzero(w[:, j] > 0.5) if (w[:, j] > 0.5).sum() >= 10 else np.argsort(-w[:, j])[:30]
+        u, _, vt = np.linalg.svd((target[sel] - target[sel].mean(0)).T @ (rest[sel] - rest[sel].mean(0)))
+        rots.append(u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt)
+    g, q = np.stack(rots), model.frames.double().numpy()
+    # World rotations chain as G_j = G_parent Q_j R_j Q_j^T (blsm.kinematics): R_j = Q^T G_p^T G_j Q.
+    local = [np.eye(3) if p < 0 else q[j].T @ g[p].T @ g[j] @ q[j] for j, p in enumerate(model.parents)]
+    goal = torch.as_tensor(np.stack(local), dtype=torch.float32)[None]
+    lim = model.dof_limits.float()
+    # Start near the rest pose but off the limits, where tanh would have no gradient.
+    x = unconstrained_from_angles(torch.zeros(1, model.num_dofs), lim, eps=0.1).requires_grad_(True)
+    opt = torch.optim.Adam([x], lr=0.1)
+    for _ in range(200):
+        opt.zero_grad()
+        theta = angles_from_unconstrained(x, lim)
+        rot = joint_rotations(theta, model.dof_slots, model.dof_axis, model.dof_sign)
+        ((rot - goal) ** 2).sum().backward()
+        opt.step()
+        with torch.no_grad():  # keep tanh off saturation, so that the mesh fit can still move it
+            x.clamp_(-3.0, 3.0)
+    orient = Rotation.from_matrix(g[model.parents.index(-1)]).as_rotvec()
+    return torch.tensor(orient, dtype=torch.float32)[None], x.detach()
+
+
+def _levenberg_marquardt(
+    f: Any, theta: torch.Tensor, goal: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, iterations: int
+) -> torch.Tensor:
+    """Minimise ``||f(theta) - goal||^2`` in the box [lo, hi] (steps are clipped into it).
+
+    f maps (B, P) to (B, N); the Jacobian is a one-sided difference pointing into the box.
+    """
+    mu, eye = 1e-3, torch.eye(len(theta), dtype=theta.dtype)
+    r = f(theta[None])[0] - goal
+    cost = r @ r
+    for _ in range(iterations):
+        h = torch.full_like(theta, 1e-6).where(theta + 1e-6 <= hi, -1e-6)
+        fx = f(torch.cat([theta[None], theta + torch.diag(h)]))  # one batched pass for all P columns
+        jac = ((fx[1:] - fx[0]) / h[:, None]).T  # (N, P)
+        jtj, grad = jac.T @ jac, jac.T @ (fx[0] - goal)
+        while mu < 1e10:
+            step = torch.linalg.solve(jtj + mu * torch.diag(jtj.diagonal()) + 1e-12 * eye, -grad)
+            new = torch.minimum(torch.maximum(theta + step, lo), hi)
+            r = f(new[None])[0] - goal
+            if r @ r < cost:
+                break
+            mu *= 4.0
+        else:
+            break
+        theta, gain, cost, mu = new, cost - r @ r, r @ r, mu / 3.0
+        if gain <= 1e-10 * (cost + gain) or cost < 1e-14 * len(goal):
+            break
+    return theta
+
+
 def fit_posed_registration(
-    model: BLSM, target: np.ndarray, steps: tuple[int, int, int] = (60, 160, 280), lr: float = 0.05
+    model: BLSM, target: np.ndarray, iterations: int = 40
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """Fit BLSM to a posed body in its topology, then set displacements that reproduce it exactly.
 
-    Adam on the mean squared vertex distance in three stages: (1) ``global_orient`` and ``transl``
-    (started from a Kabsch alignment of the rest pose), (2) + the unconstrained pose x (Eq. 6),
-    (3) + bone and shape coefficients. The displacements are then ``D_i = A_i^-1 (target_i - b_i)
-    - T_i`` with the blended transform of vertex i (as :func:`synth.subjects.fit_registration`).
+    Staged: (1) the rotation of each bone's rigid core (Kabsch) gives ``global_orient`` and, by an
+    Adam fit of the joint rotations in the unconstrained x of Eq. 6, the angles; ``transl`` matches
+    the centroids; (2) damped Gauss-Newton (Levenberg-Marquardt, float64) on the vertex distances
+    over all of ``global_orient``, ``transl``, the angles (kept inside their limits), bone and shape
+    coefficients. (Adam on the vertex distances from the rest pose, or pose before shape, stops in
+    local minima millimetres off; so does Gauss-Newton in x, whose atoms saturate at a limit.) The
+    displacements are then ``D_i = A_i^-1 (target_i - b_i) - T_i`` with the blended transform of
+    vertex i, as in :func:`synth.subjects.fit_registration`.
 
     Args:
         target: (Vb, 3) posed body in the model's topology, metres.
-        steps: Adam steps of the three stages.
+        iterations: Levenberg-Marquardt iterations at most.
 
     Returns:
-        The registration (``angles`` in radians from the fitted x) and a report: ``fit_mean_mm`` and
-        ``fit_max_mm`` (vertex error before displacements), ``displaced_max_mm`` (after).
+        The registration (``angles`` in radians) and a report: ``fit_mean_mm`` and ``fit_max_mm``
+        (vertex error before displacements).
     """
-    from scipy.spatial.transform import Rotation
+    import copy
 
-    tgt = torch.as_tensor(np.asarray(target), dtype=torch.float32)[None]
-    # Start near the rest pose but off the limits, where tanh would have no gradient.
-    x = unconstrained_from_angles(torch.zeros(1, model.num_dofs), model.dof_limits, eps=0.1).float()
+    goal = np.asarray(target, np.float64)
+    orient, x = _initial_pose(model, goal)
+    m64 = copy.deepcopy(model).double()
     with torch.no_grad():
-        rest = model(pose=x).vertices[0]
-        rot = Rotation.align_vectors((tgt[0] - tgt[0].mean(0)).numpy(), (rest - rest.mean(0)).numpy())[0]
-        orient = torch.tensor(rot.as_rotvec(), dtype=torch.float32)[None]
-        transl = tgt.mean(1) - model(pose=x, global_orient=orient).vertices.mean(1)
-    p = {
-        "global_orient": orient, "transl": transl, "pose": x,
-        "bone": torch.zeros(1, model.num_bone_coeffs), "shape": torch.zeros(1, model.num_shape_coeffs),
-    }
-    for t in p.values():
-        t.requires_grad_(True)
-    stages = (("global_orient", "transl"), ("global_orient", "transl", "pose"), tuple(p))
-    for names, n in zip(stages, steps):
-        opt = torch.optim.Adam([p[k] for k in names], lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(n, 1), eta_min=lr * 0.02)
-        for _ in range(n):
-            opt.zero_grad()
-            loss = ((model(**p).vertices - tgt) ** 2).sum(-1).mean() * 1e4
-            if not torch.isfinite(loss):
-                raise ValueError("registration fit diverged (NaN loss)")
-            loss.backward()
-            opt.step()
-            sched.step()
+        angles = angles_from_unconstrained(x.double(), m64.dof_limits)
+        posed = m64(angles=angles, global_orient=orient.double()).vertices[0]
+        transl = torch.as_tensor(goal.mean(0)) - posed.mean(0)
+    sizes = {"global_orient": 3, "transl": 3, "angles": model.num_dofs}
+    sizes.update(bone=model.num_bone_coeffs, shape=model.num_shape_coeffs)
+    nb = sizes["bone"] + sizes["shape"]
+    start = torch.cat([orient[0].double(), transl, angles[0], torch.zeros(nb, dtype=torch.float64)])
+    inf = torch.full((6,), torch.inf, dtype=torch.float64)
+    lo = torch.cat([-inf, m64.dof_limits[:, 0], -inf[:1].expand(nb)])
+    hi = torch.cat([inf, m64.dof_limits[:, 1], inf[:1].expand(nb)])
+
+    def unpack(t: torch.Tensor) -> dict[str, torch.Tensor]:
+        return dict(zip(sizes, torch.split(t, list(sizes.values()), dim=1), strict=True))
+
+    def vertices(t: torch.Tensor) -> torch.Tensor:  # (B, P) parameters -> (B, 3 Vb)
+        return m64(**unpack(t)).vertices.reshape(len(t), -1)
+
     with torch.no_grad():
+        theta = _levenberg_marquardt(vertices, start, torch.as_tensor(goal).ravel(), lo, hi, iterations)
+        p = {k: v.float() for k, v in unpack(theta[None]).items()}
         out = model(**p)
-        err = (out.vertices - tgt).norm(dim=-1)[0].numpy() * 1000.0
+        err = np.linalg.norm(out.vertices[0].numpy() - goal, axis=1) * 1000.0
         tr = out.skinning_transforms[0].numpy().astype(np.float64)
         w = model.weights.numpy().astype(np.float64)
         a = np.einsum("vj,jab->vab", w, tr[:, :, :3])
         b = w @ tr[:, :, 3]
-        goal = np.asarray(target, np.float64)
-        rest_pos = np.linalg.solve(a, (goal - b)[..., None])[..., 0]
-        disp = rest_pos - out.template[0].numpy()
-        after = np.linalg.norm(np.einsum("vab,vb->va", a, out.template[0].numpy() + disp) + b - goal, axis=1)
-    reg = {k: p[k].detach()[0].numpy() for k in ("bone", "shape", "global_orient", "transl")}
-    reg["angles"] = out.angles[0].numpy()
-    reg["displacement"] = disp
-    report = {"fit_mean_mm": float(err.mean()), "fit_max_mm": float(err.max()), "displaced_max_mm": float(after.max() * 1000)}
+        disp = np.linalg.solve(a, (goal - b)[..., None])[..., 0] - out.template[0].numpy()
+    reg = {k: p[k][0].numpy() for k in ("bone", "shape", "global_orient", "transl")}
+    reg.update(angles=out.angles[0].numpy(), displacement=disp)
+    report = {"fit_mean_mm": float(err.mean()), "fit_max_mm": float(err.max())}
     return {k: np.asarray(val, dtype=np.float32) for k, val in reg.items()}, report
 
 
@@ -333,7 +394,7 @@ def load_registration(model: BLSM, folder: str | Path) -> tuple[dict[str, np.nda
             "(a registration mesh must be in BLSM topology)"
         )
     if not np.array_equal(np.asarray(mesh.faces), model.faces.numpy()):
-        raise ValueError(f"{path}: faces differ from the model's (a registration mesh must be in BLSM topology)")
+        raise ValueError(f"{path}: faces differ from the model's (a registration mesh is in BLSM topology)")
     try:
         reg, report = fit_posed_registration(model, np.asarray(mesh.vertices))
     except ValueError as exc:
@@ -360,7 +421,8 @@ def import_scan(model: BLSM, folder: str | Path, texture_size: int = 1024) -> Su
     scan = _one(folder, "scan", SCAN_SUFFIXES)
     vertices, faces, uv, faces_uv, texture = load_scan(scan, texture_size)
     reg, reg_meta = load_registration(model, folder)
-    meta = {"source": "scan", "scan": str(scan), "scan_sha256": blsm_io.sha256_file(scan), "registration": reg_meta}
+    meta = {"source": "scan", "scan": str(scan), "scan_sha256": blsm_io.sha256_file(scan)}
+    meta["registration"] = reg_meta
     return rig_subject(model, folder.name, vertices, faces, uv, faces_uv, texture, reg, meta)
 
 

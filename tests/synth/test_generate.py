@@ -1,0 +1,275 @@
+"""The generator end to end on tiny datasets: validation, determinism, resume after SIGKILL, the
+three pipelines, skip-bad, and one-line errors for bad input."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from synth import format as fmt
+from synth.config import BackgroundConfig, GeneratorConfig, OutputConfig, PeopleConfig, RenderConfig, SubjectsConfig
+from synth.camera import CameraConfig
+from synth.generate import generate, subdivide
+from synth.shards import read_shard, write_shard
+from synth.validate import validate
+
+ROOT = Path(__file__).resolve().parents[2]
+HDRI = ROOT.parent / "shared" / "assets" / "hdri"
+
+TINY = GeneratorConfig(
+    seed=7,
+    num=6,
+    subjects=SubjectsConfig(count=2, texture_size=128),
+    people=PeopleConfig(min=1, max=2),
+    camera=CameraConfig(width=96, height=96, rare_rate=0.2, truncation_rate=0.3),
+    background=BackgroundConfig(env_width=128),
+    render=RenderConfig(spp=4),
+    output=OutputConfig(shard_size=3),
+)
+TINY_YAML = """seed: 7
+num: 6
+subjects: {count: 2, texture_size: 128}
+people: {min: 1, max: 2}
+camera: {width: 96, height: 96, rare_rate: 0.2, truncation_rate: 0.3}
+background: {env_width: 128}
+render: {spp: 4}
+output: {shard_size: 3}
+"""
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("tiny")
+    generate(TINY, out, progress=False)
+    return out
+
+
+def _copy_subjects(src: Path, dst: Path) -> None:
+    shutil.copytree(src / "subjects", dst / "subjects")
+
+
+def _shard_digests(path: Path) -> dict[str, str]:
+    return {k: v["sha256"] for k, v in json.loads((path / "manifest.json").read_text())["shards"].items()}
+
+
+def test_tiny_dataset_is_complete_and_validates(tiny):
+    man = json.loads((tiny / "manifest.json").read_text())
+    assert man["complete"] and man["num_samples"] == 6 and len(man["shards"]) == 2
+    rep = validate(tiny)
+    assert rep.samples == 6 and rep.failures == []
+    sample = fmt.decode_sample(read_shard(tiny / "shard-000000.tar")["000000000"])
+    doc = sample["json"]
+    assert set(read_shard(tiny / "shard-000000.tar")["000000000"]) == set(fmt.FIELDS)
+    p = doc["people"][0]
+    assert len(p["keypoints_2d"]) == len(doc["keypoint_names"]) == 44
+    assert len(p["blsm"]["pose"]) == 47 and len(p["bone_lengths"]) == 20
+    assert sample["mask"].max() == len(doc["people"]) and sample["depth"].max() > 0
+
+
+def _rewrite(tiny: Path, tmp_path: Path, edit) -> Path:
+    """A copy of the dataset with sample 0 edited and the manifest checksum updated."""
+    out = tmp_path / "edited"
+    shutil.copytree(tiny, out)
+    path = out / "shard-000000.tar"
+    samples = read_shard(path)
+    edit(samples["000000000"])
+    digest = write_shard(path, [(int(k), v) for k, v in sorted(samples.items())])
+    man = json.loads((out / "manifest.json").read_text())
+    man["shards"]["shard-000000.tar"]["sha256"] = digest
+    (out / "manifest.json").write_text(json.dumps(man))
+    return out
+
+
+def _edit_json(fields, fn):
+    doc = json.loads(fields["json"])
+    fn(doc)
+    fields["json"] = fmt.encode_json(doc)
+
+
+@pytest.mark.parametrize(
+    "what, message",
+    [
+        ("keypoints", "keypoints_2d are not the projection"),
+        ("mask", "the mask differs from the projected meshes"),
+        ("box", "is not the mask's box"),
+        ("visible", "a visible keypoint lies outside the person's mask"),
+        ("pose", "keypoints_3d differ from the rebuilt body"),
+        ("depth", "depth differs from the correspondences"),
+    ],
+)
+def test_validate_catches_labels_that_disagree_with_the_pixels(tiny, tmp_path, what, message):
+    def edit(fields):
+        if what == "keypoints":
+            _edit_json(fields, lambda d: d["people"][0]["keypoints_2d"][3].__setitem__(0, d["people"][0]["keypoints_2d"][3][0] + 0.5))
+        elif what == "mask":
+            m = fmt.decode_png(fields["mask.png"])
+            fields["mask.png"] = fmt.encode_png(np.roll(m, 3, axis=1))
+        elif what == "box":
+            _edit_json(fields, lambda d: d["people"][0]["box"].__setitem__(2, d["people"][0]["box"][2] + 1))
+        elif what == "visible":
+            _edit_json(fields, lambda d: (d["people"][0]["visible"].__setitem__(0, True), d["people"][0]["in_frame"].__setitem__(0, True), d["people"][0]["keypoints_2d"].__setitem__(0, [0.5, 0.5])))
+        elif what == "pose":
+            _edit_json(fields, lambda d: d["people"][0]["blsm"]["pose"].__setitem__(20, d["people"][0]["blsm"]["pose"][20] + 0.5))
+        elif what == "depth":
+            dep = fmt.decode_exr(fields["depth.exr"])
+            fields["depth.exr"] = fmt.encode_exr(np.where(dep > 0, dep + 0.01, 0).astype(np.float32))
+
+    rep = validate(_rewrite(tiny, tmp_path, edit))
+    assert any(message in f for f in rep.failures), rep.failures
+
+
+def test_validate_catches_a_damaged_shard_and_exits_nonzero(tiny, tmp_path):
+    out = tmp_path / "damaged"
+    shutil.copytree(tiny, out)
+    data = bytearray((out / "shard-000001.tar").read_bytes())
+    data[2000] ^= 0xFF
+    (out / "shard-000001.tar").write_bytes(bytes(data))
+    r = subprocess.run([sys.executable, "-m", "synth.cli", "validate", str(out)], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 1
+    assert "SHA-256 differs from the manifest" in r.stdout
+
+
+def test_sigkill_then_resume_gives_the_same_dataset(tiny, tmp_path):
+    """A run killed with SIGKILL part-way and resumed equals the uninterrupted run, byte for byte."""
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY_YAML)
+    out = tmp_path / "killed"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    cmd = [sys.executable, "-m", "synth.cli", "generate", str(cfg), "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 300
+    while not (out / "shard-000000.tar").exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (out / "shard-000001.tar").exists()
+    man = json.loads((out / "manifest.json").read_text())
+    assert not man["complete"]
+    r = subprocess.run(cmd + ["--resume"], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    for name in ("shard-000000.tar", "shard-000001.tar"):
+        a, b = read_shard(out / name), read_shard(tiny / name)
+        assert a.keys() == b.keys()
+        differ = [f"{k}.{f}" for k in a for f in a[k] if a[k][f] != b[k][f]]
+        assert not differ, f"{name}: members differ: {differ}"
+    assert _shard_digests(out) == _shard_digests(tiny)
+    for name in ("shard-000000.tar", "shard-000001.tar"):
+        assert (out / name).read_bytes() == (tiny / name).read_bytes()
+
+
+@pytest.mark.parametrize("pipeline", ["raw", "blsm"])
+def test_raw_and_blsm_pipelines_validate(tiny, tmp_path, pipeline):
+    out = tmp_path / pipeline
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    cfg = dataclasses.replace(TINY, num=3, pipeline=pipeline, subdivide=pipeline == "blsm")
+    generate(cfg, out, progress=False)
+    rep = validate(out)
+    assert rep.samples == 3 and rep.failures == []
+    doc = fmt.decode_sample(read_shard(out / "shard-000000.tar")["000000000"])["json"]
+    assert doc["people"][0]["pipeline"] == pipeline
+
+
+@pytest.mark.skipif(not HDRI.is_dir(), reason="needs ../shared/assets/hdri (the shared CC0 HDRIs)")
+def test_hdri_backgrounds_validate(tiny, tmp_path):
+    out = tmp_path / "hdri"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    cfg = dataclasses.replace(TINY, num=2, background=BackgroundConfig(kind="hdri", folder=str(HDRI), env_width=256))
+    generate(cfg, out, progress=False)
+    assert validate(out).failures == []
+    doc = fmt.decode_sample(read_shard(out / "shard-000000.tar")["000000000"])["json"]
+    assert doc["background"]["kind"] == "hdri" and doc["background"]["file"].endswith(".exr")
+
+
+def test_skip_bad_lists_the_failing_sample_and_keeps_the_others(tiny, tmp_path, monkeypatch):
+    from synth import generate as gen
+
+    real = gen.SampleMaker.make
+
+    def flaky(self, index, rng):
+        if index == 1:
+            raise RuntimeError("simulated failure")
+        return real(self, index, rng)
+
+    monkeypatch.setattr(gen.SampleMaker, "make", flaky)
+    out = tmp_path / "skip"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    with pytest.raises(RuntimeError, match="sample 1: simulated failure"):
+        generate(dataclasses.replace(TINY, num=3), out, progress=False)
+    assert not list(out.glob("shard-*.tar")) and not list(out.glob(".shard-*"))  # no partial shard
+    shutil.rmtree(out)
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    man = generate(dataclasses.replace(TINY, num=3, skip_bad=True), out, progress=False)
+    assert man["skipped"] == [{"index": 1, "reason": "RuntimeError: simulated failure"}]
+    assert sorted(read_shard(out / "shard-000000.tar")) == ["000000000", "000000002"]
+
+
+def _cli(args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", "synth.cli", *args], capture_output=True, text=True, cwd=cwd)
+
+
+def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tiny, tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("nmu: 3\n")
+    r = _cli(["generate", str(bad), "--out", str(tmp_path / "o1")])
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0
+    assert r.stderr.startswith(f"synth: error: {bad}: nmu: unknown key")
+    assert not (tmp_path / "o1").exists()
+
+    empty = tmp_path / "empty_hdri"
+    empty.mkdir()
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(TINY_YAML + f"background: {{kind: hdri, folder: {empty}}}\n".replace("background: {env_width: 128}\n", ""))
+    cfg.write_text(TINY_YAML.replace("background: {env_width: 128}", f"background: {{kind: hdri, folder: {empty}}}"))
+    out = tmp_path / "o2"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    r = _cli(["generate", str(cfg), "--out", str(out)])
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert f"{empty}: the HDRI folder holds no" in r.stderr
+    assert not list(out.glob("shard-*.tar"))
+
+    # A subject file with NaN vertices: the error names the file.
+    out3 = tmp_path / "o3"
+    out3.mkdir()
+    _copy_subjects(tiny, out3)
+    p = out3 / "subjects" / "anny_0000.npz"
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["vertices"][5, 1] = np.nan
+    np.savez(p, **arrays)
+    cfg3 = tmp_path / "c3.yaml"
+    cfg3.write_text(TINY_YAML)
+    r = _cli(["generate", str(cfg3), "--out", str(out3)])
+    assert r.returncode == 2 and f"{p}: vertices has NaN or inf" in r.stderr, r.stderr
+    assert not list(out3.glob("shard-*.tar"))
+
+
+def test_subdivision_keeps_each_child_inside_its_parent():
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    parents, new = subdivide(faces)
+    assert new.shape == (8, 3) and parents.shape == (4 + 5, 2)
+    verts = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    sub = 0.5 * (verts[parents[:, 0]] + verts[parents[:, 1]])
+    for f in range(len(faces)):
+        tri = verts[faces[f]]
+        for c in new[4 * f : 4 * f + 4]:
+            centroid = sub[c].mean(0)
+            e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
+            b = np.linalg.lstsq(np.stack([e1, e2], 1), centroid - tri[0], rcond=None)[0]
+            assert b.min() >= 0 and b.sum() <= 1
