@@ -30,7 +30,7 @@ from synth import labels as lab
 from synth.camera import sample_camera
 from synth.config import GeneratorConfig
 from synth.render import PeopleRenderer, RenderMesh, linear_to_srgb, srgb_to_linear
-from synth.shards import ShardWriter, sample_rng, shard_name, write_shard
+from synth.shards import MANIFEST, ShardWriter, sample_rng, shard_name, write_shard
 from synth.subjects import Subject, anny_subject, load_subject, pose_subject, save_subject
 
 SUBJECTS = "subjects"
@@ -400,44 +400,40 @@ def _posed_joint(keypoints: np.ndarray, model: Any, j: int) -> np.ndarray:
 
 
 _MAKER: SampleMaker | None = None
-_QUEUE: Any = None
+_ARGS: tuple = ()
+_MADE = 0
 
 
-def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int, queue: Any) -> None:
-    global _MAKER, _QUEUE
+def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int) -> None:
+    """Load a worker's state once: the model, subjects, poses, backgrounds (scenes on first use)."""
+    global _MAKER, _ARGS, _MADE
+    import drjit as dr
+
     from synth.config import from_dict
 
     torch.set_num_threads(1)
-    import drjit as dr
-
     dr.set_thread_count(threads)
+    _ARGS, _MADE = (cfg_dict, out, variant, threads), 0
     _MAKER = SampleMaker(from_dict(GeneratorConfig, cfg_dict), Path(out), variant)
-    _QUEUE = queue
 
 
-def _make_shard(args: tuple[int, list[int]]) -> tuple[int, str, int, list[dict]]:
-    shard, indices = args
+def _make_one(index: int) -> tuple[int, dict[str, bytes] | None, str, str]:
+    """Sample ``index`` as ``(index, fields, "", "")``, or ``(index, None, error type, message)``."""
     assert _MAKER is not None
-    cfg = _MAKER.cfg
-    skipped: list[dict] = []
+    try:
+        return index, _MAKER.make(index, sample_rng(_MAKER.cfg.seed, index)), "", ""
+    except Exception as exc:  # reported by the main process: stop, or skip with --skip-bad
+        return index, None, type(exc).__name__, format_error(exc)
 
-    def samples():
-        for i in indices:
-            try:
-                fields = _MAKER.make(i, sample_rng(cfg.seed, i))
-            except Exception as exc:
-                if not cfg.skip_bad:
-                    raise RuntimeError(f"sample {i}: {exc}".splitlines()[0]) from exc
-                skipped.append({"index": i, "reason": f"{type(exc).__name__}: {exc}".splitlines()[0]})
-                fields = None
-            if _QUEUE is not None:
-                _QUEUE.put(1)
-            if fields is not None:
-                yield i, fields
 
-    path = _MAKER.out / shard_name(shard)
-    digest = write_shard(path, samples())
-    return shard, digest, len(indices) - len(skipped), skipped
+def _make_in_process(index: int) -> tuple[int, dict[str, bytes] | None, str, str]:
+    """:func:`_make_one` in this process, rebuilding the worker state every ``recycle_after`` images."""
+    global _MADE
+    assert _MAKER is not None
+    if _MADE >= _MAKER.cfg.render.recycle_after:
+        _init_worker(*_ARGS)
+    _MADE += 1
+    return _make_one(index)
 
 
 def generate(
@@ -450,13 +446,22 @@ def generate(
 ) -> dict[str, Any]:
     """Generate the dataset of ``cfg`` into ``out``; return the manifest.
 
+    Worker processes make samples (any sample, from ``(seed, index)`` alone); this process writes
+    them into shards in index order, each shard to a temporary file renamed when complete, and
+    rewrites the manifest after every shard. Workers are replaced after ``render.recycle_after``
+    images, which bounds any memory a long run might accumulate in them.
+
     Args:
         cfg: the configuration (``cfg.num`` samples).
         out: the dataset folder.
-        workers: worker processes (each renders whole shards).
+        workers: worker processes; 1 makes the samples in this process.
         resume: continue an interrupted run (keeps shards whose checksum matches).
-        progress: print a progress line with rate and ETA on stderr.
+        progress: report progress with rate and ETA on stderr.
         stop_after: stop after this many shards (tests).
+
+    Raises:
+        ValueError: bad input (config, subjects, backgrounds, poses), before any shard is written.
+        RuntimeError: a sample failed (without ``cfg.skip_bad``); finished shards are kept.
     """
     import blsm
 
@@ -470,76 +475,93 @@ def generate(
     elif cfg.background.kind == "images":
         bg.list_folder(cfg.background.folder, bg.IMAGE_EXT, "background image")
     variant = choose_variant(cfg)
-    model = blsm.load()
-    prepare_subjects(cfg, out, model)
+    prepare_subjects(cfg, out, blsm.load())
+    skipped: list[dict] = []
+    if resume and (out / MANIFEST).exists():  # keep the skip list of the shards kept
+        kept = {i for name in done for i in writer.indices(int(name[6:12]))}
+        skipped = [e for e in json.loads((out / MANIFEST).read_text()).get("skipped", []) if e["index"] in kept]
     if stop_after is not None:
         todo = todo[:stop_after]
-    total = sum(len(writer.indices(s)) for s in todo)
-    skipped_all: list[dict] = list((json.loads((out / "manifest.json").read_text()).get("skipped", [])) if resume and (out / "manifest.json").exists() else [])
-    skipped_all = [s for s in skipped_all if any(s["index"] in writer.indices(int(n[6:12])) for n in done)]
-    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
-    ctx = mp.get_context("spawn")
-    if not progress:
-        queue = None
-    elif workers <= 1:
-        import queue as _q
-
-        queue = _q.Queue()
+    indices = [i for s in todo for i in writer.indices(s)]
+    workers = max(1, min(workers, len(indices)))
+    plural = "s" * (workers > 1)
+    _log(f"{len(indices)} images in {len(todo)} shards -> {out} ({workers} worker{plural}, Mitsuba {variant})")
+    meter = _Progress(len(indices), progress)
+    init = (_cfg_json(cfg), str(out), variant, max(1, (os.cpu_count() or 1) // workers))
+    pool = None
+    if workers == 1:
+        _init_worker(*init)
+        results = map(_make_in_process, indices)
     else:
-        queue = ctx.Manager().Queue()
-    tasks = [(s, list(writer.indices(s))) for s in todo]
-    t0 = time.time()
-    made = 0
-    recycle = max(1, cfg.render.recycle_after // cfg.output.shard_size)
-    _log(f"{total} images in {len(todo)} shards -> {out} ({workers} worker{'s' * (workers > 1)}, Mitsuba {variant})")
+        pool = mp.get_context("spawn").Pool(workers, _init_worker, init, maxtasksperchild=cfg.render.recycle_after)
+        results = pool.imap(_make_one, indices)
 
-    def tick() -> None:
-        nonlocal made
-        if queue is None:
-            return
-        while not queue.empty():
-            queue.get()
-            made += 1
-        el = time.time() - t0
-        rate = made / el if el > 0 else 0.0
-        eta = (total - made) / rate if rate > 0 else float("nan")
-        line = f"{made}/{total} images  {rate:.2f} img/s  ETA {_hms(eta)}"
-        if sys.stderr.isatty():
-            print(f"\r[synth] {line}   ", end="", file=sys.stderr, flush=True)
+    def shard_samples(s: int):
+        for i in writer.indices(s):
+            index, fields, kind, msg = next(results)
+            assert index == i
+            meter.tick()
+            if fields is not None:
+                yield i, fields
+            elif cfg.skip_bad:
+                skipped.append({"index": i, "reason": f"{kind}: {msg}"})
+            else:
+                raise RuntimeError(f"sample {i}: {msg}")
 
-    def finish(res: tuple[int, str, int, list[dict]]) -> None:
-        shard, digest, count, skipped = res
-        done[shard_name(shard)] = {"sha256": digest, "samples": count, "first": writer.indices(shard).start}
-        skipped_all.extend(skipped)
-        man = writer._manifest(dict(sorted(done.items())))
-        man["skipped"] = sorted(skipped_all, key=lambda s: s["index"])
-        from synth.shards import _write_json_atomic
-
-        _write_json_atomic(out / "manifest.json", man)
-        if not sys.stderr.isatty():
-            _log(f"{shard_name(shard)}: {count} samples ({len(done)}/{writer.num_shards} shards)")
-
-    if workers <= 1:
-        _init_worker(asdict(cfg), str(out), variant, os.cpu_count() or 1, queue)
-        for t in tasks:
-            finish(_make_shard(t))
-            tick()
-    else:
-        with ctx.Pool(workers, initializer=_init_worker, initargs=(asdict(cfg), str(out), variant, threads, queue), maxtasksperchild=recycle) as pool:
-            pending = [pool.apply_async(_make_shard, (t,)) for t in tasks]
-            while pending:
-                for r in [r for r in pending if r.ready()]:
-                    pending.remove(r)
-                    finish(r.get())
-                tick()
-                time.sleep(0.2)
-    tick()
-    if sys.stderr.isatty():
-        print(file=sys.stderr)
-    man = json.loads((out / "manifest.json").read_text()) if (out / "manifest.json").exists() else writer._manifest(done)
-    el = time.time() - t0
-    _log(f"done: {sum(e['samples'] for e in done.values())} samples in {len(done)} shards, {_hms(el)}" + (f", {len(skipped_all)} skipped" if skipped_all else ""))
+    try:
+        for s in todo:
+            before = len(skipped)
+            digest = write_shard(out / shard_name(s), shard_samples(s))
+            count = len(writer.indices(s)) - (len(skipped) - before)
+            done[shard_name(s)] = {"sha256": digest, "samples": count, "first": writer.indices(s).start}
+            writer.write_manifest(done, skipped)
+            meter.shard(f"{shard_name(s)}: {count} samples ({len(done)}/{writer.num_shards} shards)")
+    finally:
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+    meter.close()
+    man = writer.write_manifest(done, skipped)
+    n = sum(e["samples"] for e in done.values())
+    _log(f"done: {n} samples in {len(done)} shards, {_hms(meter.elapsed())}" + (f", {len(skipped)} skipped" if skipped else ""))
     return man
+
+
+class _Progress:
+    """Images done, rate and ETA on stderr: one updating line on a terminal, a line every 30 s
+    (and one per shard) otherwise."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.total, self.enabled, self.made = total, enabled, 0
+        self.t0 = self.last = time.time()
+        self.tty = sys.stderr.isatty()
+
+    def elapsed(self) -> float:
+        return time.time() - self.t0
+
+    def line(self) -> str:
+        rate = self.made / max(self.elapsed(), 1e-9)
+        eta = (self.total - self.made) / rate if rate > 0 else float("nan")
+        pct = 100.0 * self.made / max(self.total, 1)
+        return f"{self.made}/{self.total} images ({pct:.0f} %)  {rate:.2f} img/s  ETA {_hms(eta)}"
+
+    def tick(self) -> None:
+        self.made += 1
+        if not self.enabled:
+            return
+        if self.tty:
+            print(f"\r[synth] {self.line()}   ", end="", file=sys.stderr, flush=True)
+        elif time.time() - self.last >= 30:
+            self.last = time.time()
+            _log(self.line())
+
+    def shard(self, msg: str) -> None:
+        if self.enabled and not self.tty:
+            _log(f"{msg}; {self.line()}")
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            print(file=sys.stderr, flush=True)
 
 
 def _cfg_json(cfg: GeneratorConfig) -> dict:

@@ -145,7 +145,8 @@ class ShardWriter:
     def indices(self, shard: int) -> range:
         return range(shard * self.shard_size, min((shard + 1) * self.shard_size, self.num))
 
-    def _manifest(self, shards: dict[str, Any]) -> dict[str, Any]:
+    def manifest(self, shards: dict[str, Any], skipped: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+        """The manifest for the finished ``shards`` (name -> entry) and the ``skipped`` samples."""
         return {
             "format": FORMAT,
             "version": VERSION,
@@ -156,7 +157,14 @@ class ShardWriter:
             "versions": self.versions,
             "shards": shards,
             "complete": len(shards) == self.num_shards,
+            "skipped": sorted(skipped or [], key=lambda e: e["index"]),
         }
+
+    def write_manifest(self, shards: dict[str, Any], skipped: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+        """Write :meth:`manifest` atomically to ``out/manifest.json``; return it."""
+        man = self.manifest(dict(sorted(shards.items())), skipped)
+        _write_json_atomic(self.out / MANIFEST, man)
+        return man
 
     def pending(self, resume: bool) -> tuple[list[int], dict[str, Any]]:
         """The shards still to make and the finished ones' manifest entries.
@@ -218,9 +226,7 @@ class ShardWriter:
                 ((i, make_sample(i, sample_rng(self.seed, i))) for i in idx),
             )
             done[shard_name(s)] = {"sha256": digest, "samples": len(idx), "first": idx.start}
-            _write_json_atomic(self.out / MANIFEST, self._manifest(dict(sorted(done.items()))))
+            self.write_manifest(done)
             if on_shard is not None:
                 on_shard(s, len(idx))
-        manifest = self._manifest(dict(sorted(done.items())))
-        _write_json_atomic(self.out / MANIFEST, manifest)
-        return manifest
+        return self.write_manifest(done)

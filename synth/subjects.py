@@ -444,13 +444,32 @@ def fit_registration(model: BLSM, target: np.ndarray, steps: int = 300) -> tuple
     return {k: np.asarray(v, dtype=np.float32) for k, v in reg.items()}, {"fit_mean_mm": err}
 
 
+@lru_cache(maxsize=1)
+def _population() -> Any:
+    from anny.shape_distribution import SimpleShapeDistribution
+
+    return SimpleShapeDistribution(_anny())
+
+
 def sample_phenotype(rng: np.random.Generator) -> dict[str, float]:
-    """Anny phenotype values in [0, 1]: a population over sexes, ages (0 to 90), muscle, weight,
-    height and proportions. Ages are drawn so that about 80 % are adults."""
-    ph = {k: float(rng.uniform()) for k in ("gender", "muscle", "weight", "height", "proportions")}
-    # Anny's age parameter: 0 newborn, 0.5 about 25 years, 1 about 90; mostly adults.
-    ph["age"] = float(rng.uniform(0.1, 0.5) if rng.uniform() < 0.2 else rng.uniform(0.5, 1.0))
-    return ph
+    """Anny phenotype values in [0, 1] for one person of a realistic population, and their age.
+
+    Anny's own population model (``anny.shape_distribution.SimpleShapeDistribution``, calibrated
+    on WHO height-for-age data): age uniform over 0 to 90 years, sex uniform, then height, weight,
+    muscle and proportions from Beta distributions conditioned on age and sex. Uniform phenotype
+    values would make Anny's extremes (a 2.3 m man) as common as the middle. Seeded from ``rng``
+    only (torch's global generator is forked, not touched).
+
+    Returns:
+        ``gender``, ``age``, ``muscle``, ``weight``, ``height``, ``proportions`` (Anny's values in
+        [0, 1]) and ``age_years``.
+    """
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(rng.integers(2**62)))
+        years, ph = _population().sample(1)
+    out = {k: float(v.reshape(-1)[0]) for k, v in ph.items()}
+    out["age_years"] = float(years.reshape(-1)[0])
+    return out
 
 
 def anny_subject(

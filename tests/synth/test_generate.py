@@ -169,6 +169,15 @@ def test_sigkill_then_resume_gives_the_same_dataset(tiny, tmp_path):
         assert (out / name).read_bytes() == (tiny / name).read_bytes()
 
 
+def test_two_workers_make_the_same_bytes_as_one(tiny, tmp_path):
+    """Samples depend on (seed, index) only: worker count and thread count do not change a byte."""
+    out = tmp_path / "two"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    man = generate(TINY, out, workers=2, progress=False)
+    assert man["complete"] and _shard_digests(out) == _shard_digests(tiny)
+
+
 @pytest.mark.parametrize("pipeline", ["raw", "blsm"])
 def test_raw_and_blsm_pipelines_validate(tiny, tmp_path, pipeline):
     out = tmp_path / pipeline
