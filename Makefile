@@ -10,14 +10,21 @@ $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
 	touch $(STAMP)
 
+# 64 labelled images with the embedded defaults (re-running continues or keeps the same dataset),
+# checked, and their contact sheet; plus a sheet of random BLSM bodies.
 demo: $(STAMP)
-	$(BIN)/blsm demo --out out/demo
+	$(BIN)/synth generate - --out out/demo/dataset --num 64 --workers 2 --resume
+	$(BIN)/synth validate out/demo/dataset
+	$(BIN)/synth preview out/demo/dataset --out out/demo/contact_sheet.png --count 16
+	$(BIN)/blsm demo --out out/demo/bodies
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 
+# Long: the generator part makes about 2000 images (about 40 minutes on 2 cores).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_forward.py --out docs/benchmarks.md
+	$(BIN)/python benchmarks/bench_synth.py --out docs/benchmarks.md
 
 # Rebuild the packaged model from Anny (about 2 minutes; the first Anny load compiles kernels).
 model: $(STAMP)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import torch
+from report import write_section  # benchmarks/report.py (run as a script)
 
 
 def _time(fn, reps: int) -> float:
@@ -80,10 +81,6 @@ def main() -> int:
 
     if args.out is not None:
         lines = [
-            "# Benchmarks",
-            "",
-            "All numbers are ratios measured side by side in one run; absolute times depend on the machine.",
-            "",
             "## BLSM forward vs smplx `lbs()` (CPU)",
             "",
             "Command: `make bench` (runs `python benchmarks/bench_forward.py --out docs/benchmarks.md`).",
@@ -105,10 +102,7 @@ def main() -> int:
             "directions; random inputs.",
             "",
         ]
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_name(args.out.name + ".tmp")
-        tmp.write_text("\n".join(lines))
-        tmp.replace(args.out)
+        write_section(args.out, "forward", lines)
         print(f"wrote {args.out}")
     return 0
 

@@ -1,8 +1,11 @@
-"""synth: the synthetic data generator (rig, repose, render with Mitsuba 3, write labelled shards).
+"""synth: the synthetic data generator (thesis Sec. 6.4.3, Fig. 6.11).
 
-In progress (issue 4): ``shards`` (atomic, byte-reproducible, resumable WebDataset shards with a
-manifest and per-sample seeding), ``camera`` (OpenCV camera sampling that frames a person, with rare
-views and truncation) and ``config`` (strict YAML configs). Subjects, rendering, labels, the
-``synth`` command and the loaders are not built yet.
+People (Anny stand-in scans or user scans, :mod:`synth.subjects`, :mod:`synth.scans`) registered
+to BLSM and rigged by nearest-vertex weight painting are reposed (:mod:`synth.generate`), framed by
+an OpenCV camera (:mod:`synth.camera`), rendered with Mitsuba 3 over a sky, HDRI or backplate
+(:mod:`synth.render`, :mod:`synth.backgrounds`) with a pixel-centre label pass
+(:mod:`synth.labels`), and written as WebDataset shards (:mod:`synth.shards`, fields in
+:mod:`synth.format`). ``synth validate``, ``preview`` and ``export`` check, show and convert a
+dataset; :class:`synth.data.SynthDataset` loads it for PyTorch. Configs: :mod:`synth.config`.
 Dependency direction: ``blsm`` <- ``synth`` <- ``recovery``.
 """

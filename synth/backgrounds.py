@@ -16,6 +16,7 @@ Bad input (a missing or empty folder, an unreadable file) is a ValueError naming
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -96,33 +97,45 @@ def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Ge
     return np.asarray(out.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
 
 
+@functools.lru_cache(maxsize=4)
+def _directions(width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(width / 2, width, 3) float32 unit directions of a lat-long map's texel centres (Y up, row 0
+    at the zenith) and (width / 2, 1) float32 ``sin(theta)`` solid-angle weights of the rows."""
+    h = width // 2
+    theta = (np.arange(h) + 0.5) / h * math.pi  # 0 at the zenith
+    phi = (np.arange(width) + 0.5) / width * 2 * math.pi
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], axis=-1)
+    d.flags.writeable = False
+    w = np.sin(theta)[:, None].astype(np.float32)
+    w.flags.writeable = False
+    return d.astype(np.float32), w
+
+
 def procedural_sky(width: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
     """An embedded environment: sky gradient, sun disk and glow, coloured ground; mean luminance ``MEAN_LUMINANCE``.
 
     Returns:
         (width / 2, width, 3) float32 linear RGB and the parameters drawn.
     """
-    h = width // 2
-    theta = (np.arange(h) + 0.5) / h * math.pi  # 0 at the zenith
-    phi = (np.arange(width) + 0.5) / width * 2 * math.pi
-    th, ph = np.meshgrid(theta, phi, indexing="ij")
-    d = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], axis=-1)  # Y up
+    d, theta_w = _directions(width)
     sun_el = math.radians(rng.uniform(15.0, 75.0))
     sun_az = rng.uniform(0.0, 2 * math.pi)
     sun = np.array([math.cos(sun_el) * math.sin(sun_az), math.sin(sun_el), math.cos(sun_el) * math.cos(sun_az)])
     zenith = np.array([0.25, 0.45, 0.95]) * rng.uniform(0.6, 1.2)
     horizon = np.array([0.85, 0.9, 1.0]) * rng.uniform(0.8, 1.2)
     ground = np.array([rng.uniform(0.15, 0.45), rng.uniform(0.15, 0.4), rng.uniform(0.1, 0.35)])
-    up = np.clip(d[..., 1], 0.0, 1.0)[..., None]
-    sky = horizon + (zenith - horizon) * up**0.5
-    cos_sun = np.clip(d @ sun, -1.0, 1.0)[..., None]
     sun_strength = rng.uniform(20.0, 80.0)
-    sky = sky + np.array([1.0, 0.9, 0.75]) * (sun_strength * (cos_sun > math.cos(math.radians(2.5))) + 0.6 * np.exp((cos_sun - 1) * 12))
-    env = np.where(d[..., 1:2] >= 0, sky, ground * (1.0 + 0.2 * sun[1]))
-    theta_w = np.sin(theta)[:, None]
-    mean = float(((env @ _LUMA) * theta_w).sum() / (theta_w.sum() * width))
+    f32 = np.float32
+    up = np.sqrt(np.clip(d[..., 1:2], 0.0, 1.0))
+    sky = horizon.astype(f32) + (zenith - horizon).astype(f32) * up
+    cos_sun = np.clip(d @ sun.astype(f32), -1.0, 1.0)[..., None]
+    glow = f32(sun_strength) * (cos_sun > math.cos(math.radians(2.5))) + f32(0.6) * np.exp((cos_sun - 1) * 12)
+    sky += np.array([1.0, 0.9, 0.75], f32) * glow
+    env = np.where(d[..., 1:2] >= 0, sky, (ground * (1.0 + 0.2 * sun[1])).astype(f32))
+    mean = float(((env @ _LUMA) * theta_w).sum(dtype=np.float64) / (theta_w.sum(dtype=np.float64) * width))
     params = {"sun_elevation_deg": math.degrees(sun_el), "sun_azimuth_deg": math.degrees(sun_az)}
-    return (env * (MEAN_LUMINANCE / mean)).astype(np.float32), params
+    return (env * f32(MEAN_LUMINANCE / mean)).astype(np.float32), params
 
 
 @dataclass

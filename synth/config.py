@@ -99,7 +99,7 @@ class BackgroundConfig:
     kind: str = "default"
     folder: str = ""
     exposure_ev: tuple[float, float] = (-0.5, 0.5)
-    env_width: int = 1024
+    env_width: int = 512
 
     def __post_init__(self) -> None:
         if self.kind not in ("default", "hdri", "images"):

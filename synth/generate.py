@@ -443,6 +443,7 @@ def generate(
     resume: bool = False,
     progress: bool = True,
     stop_after: int | None = None,
+    on_image: Any = None,
 ) -> dict[str, Any]:
     """Generate the dataset of ``cfg`` into ``out``; return the manifest.
 
@@ -458,6 +459,8 @@ def generate(
         resume: continue an interrupted run (keeps shards whose checksum matches).
         progress: report progress with rate and ETA on stderr.
         stop_after: stop after this many shards (tests).
+        on_image: called in this process as ``on_image(images_done)`` after each image
+            (benchmarks).
 
     Raises:
         ValueError: bad input (config, subjects, backgrounds, poses), before any shard is written.
@@ -501,6 +504,8 @@ def generate(
             index, fields, kind, msg = next(results)
             assert index == i
             meter.tick()
+            if on_image is not None:
+                on_image(meter.made)
             if fields is not None:
                 yield i, fields
             elif cfg.skip_bad:

@@ -241,21 +241,27 @@ class PeopleRenderer:
 
     def _assign(self, vertices, textures, camera, env, env_rotation, env_scale) -> None:
         mi, p = self.mi, self.params
+        import drjit as dr
+
+        def opaque(x: float) -> Any:
+            # A plain float would enter the compiled kernel as a literal: a new exposure or camera
+            # would then recompile the path tracer (~0.4 s of LLVM per image) instead of reusing it.
+            return dr.opaque(mi.Float, float(x))
+
         for i, (m, v, tex) in enumerate(zip(self.meshes, vertices, textures)):
             normals = vertex_normals(v, m.faces)
             p[f"person_{i}.vertex_positions"] = mi.Float(np.ascontiguousarray(v[m.split_vertex]).reshape(-1))
             p[f"person_{i}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
             p[f"person_{i}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))
         p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
-        p["env.scale"] = float(env_scale)
+        p["env.scale"] = opaque(env_scale)
         c, s = math.cos(env_rotation), math.sin(env_rotation)
         rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
         p["env.to_world"] = mi.AffineTransform4f(rot)
         x_fov, ppx, ppy = _sensor_params(camera)
         for name in ("sensor", "label_sensor"):
             p[f"{name}.to_world"] = mi.AffineTransform4f(_to_world_matrix(camera))
-            p[f"{name}.x_fov"] = x_fov
-            p[f"{name}.principal_point_offset_x"] = ppx
-            p[f"{name}.principal_point_offset_y"] = ppy
+            p[f"{name}.x_fov"] = opaque(x_fov)
+            p[f"{name}.principal_point_offset_x"] = opaque(ppx)
+            p[f"{name}.principal_point_offset_y"] = opaque(ppy)
         p.update()
-
