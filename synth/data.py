@@ -68,8 +68,15 @@ class AugmentConfig:
         rotation_deg: in-plane rotation uniform in ``[-rotation_deg, rotation_deg]`` degrees ...
         rotation_prob: ... drawn with this probability (else 0).
         flip_prob: probability of a horizontal mirror.
-        color: per-channel multiplicative colour factor uniform in ``[1 - color, 1 + color]``.
+        color: per-channel multiplicative colour factor uniform in ``[1 - color, 1 + color]``
+            (SPIN's channel noise).
         translation: crop centre shift, uniform in ``[-translation, translation]`` times the side.
+        brightness: added brightness uniform in ``[-brightness, brightness]``
+            (``kornia.enhance.adjust_brightness``).
+        contrast: contrast factor uniform in ``[1 - contrast, 1 + contrast]`` (``adjust_contrast``).
+        saturation: saturation factor uniform in ``[1 - saturation, 1 + saturation]``
+            (``adjust_saturation``).
+        hue: hue shift uniform in ``[-hue, hue]`` turns (``adjust_hue``, which takes radians).
     """
 
     scale: float = 0.25
@@ -78,23 +85,33 @@ class AugmentConfig:
     flip_prob: float = 0.5
     color: float = 0.4
     translation: float = 0.05
+    brightness: float = 0.1
+    contrast: float = 0.2
+    saturation: float = 0.2
+    hue: float = 0.02
 
     def __post_init__(self) -> None:
         ok = 0 <= self.scale < 1 and 0 <= self.color < 1 and min(self.rotation_deg, self.translation) >= 0
+        ok &= 0 <= self.brightness <= 1 and 0 <= self.contrast < 1 and 0 <= self.saturation < 1 and 0 <= self.hue <= 0.5
         if not (ok and 0 <= self.rotation_prob <= 1 and 0 <= self.flip_prob <= 1):
-            raise ValueError(f"augment ranges must be >= 0 (scale, color, probabilities <= 1), got {self}")
+            raise ValueError(
+                f"augment ranges must be >= 0 (scale, color, contrast, saturation < 1; brightness, "
+                f"probabilities <= 1; hue <= 0.5), got {self}"
+            )
 
 
 @dataclass(frozen=True)
 class CropParams:
     """The augmentation of one item: scale factor, rotation (degrees, counter-clockwise on screen),
-    flip, centre shift (fraction of the side) and per-channel colour factors."""
+    flip, centre shift (fraction of the side), per-channel colour factors and the kornia colour
+    jitter ``(brightness added, contrast factor, saturation factor, hue shift in radians)``."""
 
     scale: float = 1.0
     rotation_deg: float = 0.0
     flip: bool = False
     shift: tuple[float, float] = (0.0, 0.0)
     color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    jitter: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 0.0)
 
 
 def draw_params(cfg: AugmentConfig | None, rng: np.random.Generator) -> CropParams:
@@ -103,12 +120,14 @@ def draw_params(cfg: AugmentConfig | None, rng: np.random.Generator) -> CropPara
         return CropParams()
     u = rng.uniform(size=9)
     sym = (2 * u - 1).tolist()  # uniform in [-1, 1]
+    j = (2 * rng.uniform(size=4) - 1).tolist()
     return CropParams(
         scale=1 + sym[0] * cfg.scale,
         rotation_deg=sym[1] * cfg.rotation_deg if u[2] < cfg.rotation_prob else 0.0,
         flip=bool(u[3] < cfg.flip_prob),
         shift=(sym[4] * cfg.translation, sym[5] * cfg.translation),
         color=(1 + sym[6] * cfg.color, 1 + sym[7] * cfg.color, 1 + sym[8] * cfg.color),
+        jitter=(j[0] * cfg.brightness, 1 + j[1] * cfg.contrast, 1 + j[2] * cfg.saturation, j[3] * cfg.hue * 2 * math.pi),
     )
 
 
@@ -141,6 +160,24 @@ def camera_rotation(rotation_deg: float, flip: bool) -> np.ndarray:
     """``L = M Rz`` (3, 3): the camera-frame map matching :func:`crop_affine`'s rotation and flip."""
     c, s = math.cos(math.radians(rotation_deg)), math.sin(math.radians(rotation_deg))
     return np.diag([-1.0 if flip else 1.0, 1.0, 1.0]) @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def color_jitter(image: torch.Tensor, jitter: tuple[float, float, float, float]) -> torch.Tensor:
+    """Brightness, contrast, saturation and hue of a (3, H, W) image in [0, 1] with kornia, in that
+    order; the identity ``(0, 1, 1, 0)`` returns the image unchanged."""
+    from kornia import enhance
+
+    b, c, s, h = jitter
+    x = image[None]
+    if b != 0.0:
+        x = enhance.adjust_brightness(x, b)
+    if c != 1.0:
+        x = enhance.adjust_contrast(x, c)
+    if s != 1.0:
+        x = enhance.adjust_saturation(x, s)
+    if h != 0.0:
+        x = enhance.adjust_hue(x, h)
+    return x[0].clamp(0.0, 1.0)
 
 
 def warp_to_crop(image: torch.Tensor, affine: np.ndarray, crop: int, mode: str = "bilinear") -> torch.Tensor:
@@ -389,7 +426,7 @@ class SynthDataset(torch.utils.data.Dataset):
         mirror = np.diag([-1.0 if params.flip else 1.0, 1.0, 1.0])
 
         image = warp_to_crop(torch.tensor(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop)
-        image = (image * torch.tensor(params.color).view(3, 1, 1)).clamp(0.0, 1.0)
+        image = color_jitter((image * torch.tensor(params.color).view(3, 1, 1)).clamp(0.0, 1.0), params.jitter)
         if self.normalize:
             image = (image - _MEAN) / _STD
         labels = torch.from_numpy(np.stack([own, np.where(own, parts, 0)]).astype(np.float32))

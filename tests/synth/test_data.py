@@ -181,6 +181,25 @@ def test_seeded_augmentation_repeats_and_random_does_not(root):
     assert not torch.equal(free[2]["affine"], free[2]["affine"])
 
 
+def test_kornia_colour_jitter_changes_the_image_only(ds):
+    """Identity jitter is exact; each kornia adjustment moves the image the way it says; the
+    labels of a jittered item equal those of the plain one."""
+    from synth.data import CropParams, color_jitter
+
+    img = ds.get(0, CropParams())["image"]
+    assert torch.equal(color_jitter(img, (0.0, 1.0, 1.0, 0.0)), img)
+    assert color_jitter(img, (0.1, 1.0, 1.0, 0.0)).mean() > img.mean() + 0.05
+    assert color_jitter(img, (0.0, 0.5, 1.0, 0.0)).std() < img.std()
+    grey = color_jitter(img, (0.0, 1.0, 0.0, 0.0))
+    assert (grey.max(0).values - grey.min(0).values).abs().max() < 1e-5  # no saturation: grey
+    assert not torch.allclose(color_jitter(img, (0.0, 1.0, 1.0, 0.5)), img, atol=1e-3)
+    plain, jit = ds.get(0, CropParams()), ds.get(0, CropParams(jitter=(0.1, 1.2, 0.8, 0.1)))
+    assert not torch.equal(plain["image"], jit["image"])
+    for k in plain:
+        if k != "image":
+            assert torch.equal(plain[k], jit[k]), k
+
+
 def one_line_error(call, match: str) -> str:
     with pytest.raises(ValueError, match=match) as info:
         call()
