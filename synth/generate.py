@@ -16,6 +16,7 @@ import os
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,7 @@ from synth import labels as lab
 from synth.camera import sample_camera
 from synth.config import GeneratorConfig
 from synth.render import PeopleRenderer, RenderMesh, linear_to_srgb, srgb_to_linear
-from synth.shards import MANIFEST, ShardWriter, sample_rng, shard_name, write_shard
+from synth.shards import ShardWriter, SkipSample, sample_rng, shard_name
 from synth.subjects import Subject, anny_subject, load_subject, pose_subject, save_subject
 
 SUBJECTS = "subjects"
@@ -443,13 +444,13 @@ def generate(
     resume: bool = False,
     progress: bool = True,
     stop_after: int | None = None,
-    on_image: Any = None,
+    on_image: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """Generate the dataset of ``cfg`` into ``out``; return the manifest.
 
     Worker processes make samples (any sample, from ``(seed, index)`` alone); this process writes
-    them into shards in index order, each shard to a temporary file renamed when complete, and
-    rewrites the manifest after every shard. Workers are replaced after ``render.recycle_after``
+    them into shards in index order with :meth:`synth.shards.ShardWriter.run` (each shard to a
+    temporary file renamed when complete, the manifest rewritten after every shard). Workers are replaced after ``render.recycle_after``
     images, which bounds any memory a long run might accumulate in them.
 
     Args:
@@ -470,7 +471,7 @@ def generate(
 
     out = Path(out)
     writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions())
-    todo, done = writer.pending(resume)
+    todo, done, skipped = writer.pending(resume)
     # Check the pose and background sources before anything is made.
     PoseSource(cfg)
     if cfg.background.kind == "hdri":
@@ -479,10 +480,6 @@ def generate(
         bg.list_folder(cfg.background.folder, bg.IMAGE_EXT, "background image")
     variant = choose_variant(cfg)
     prepare_subjects(cfg, out, blsm.load())
-    skipped: list[dict] = []
-    if resume and (out / MANIFEST).exists():  # keep the skip list of the shards kept
-        kept = {i for name in done for i in writer.indices(int(name[6:12]))}
-        skipped = [e for e in json.loads((out / MANIFEST).read_text()).get("skipped", []) if e["index"] in kept]
     if stop_after is not None:
         todo = todo[:stop_after]
     indices = [i for s in todo for i in writer.indices(s)]
@@ -499,36 +496,35 @@ def generate(
         pool = mp.get_context("spawn").Pool(workers, _init_worker, init, maxtasksperchild=cfg.render.recycle_after)
         results = pool.imap(_make_one, indices)
 
-    def shard_samples(s: int):
-        for i in writer.indices(s):
-            index, fields, kind, msg = next(results)
-            assert index == i
-            meter.tick()
-            if on_image is not None:
-                on_image(meter.made)
-            if fields is not None:
-                yield i, fields
-            elif cfg.skip_bad:
-                skipped.append({"index": i, "reason": f"{kind}: {msg}"})
-            else:
-                raise RuntimeError(f"sample {i}: {msg}")
+    def make_sample(i: int, rng: np.random.Generator) -> dict[str, bytes]:
+        # The samples come from the workers, in index order; each worker drew this same rng itself.
+        index, fields, kind, msg = next(results)
+        assert index == i
+        meter.tick()
+        if on_image is not None:
+            on_image(meter.made)
+        if fields is not None:
+            return fields
+        if cfg.skip_bad:
+            raise SkipSample(f"{kind}: {msg}")
+        raise RuntimeError(f"sample {i}: {msg}")
+
+    shards_done = len(done)
+
+    def on_shard(s: int, count: int) -> None:
+        nonlocal shards_done
+        shards_done += 1
+        meter.shard(f"{shard_name(s)}: {count} samples ({shards_done}/{writer.num_shards} shards)")
 
     try:
-        for s in todo:
-            before = len(skipped)
-            digest = write_shard(out / shard_name(s), shard_samples(s))
-            count = len(writer.indices(s)) - (len(skipped) - before)
-            done[shard_name(s)] = {"sha256": digest, "samples": count, "first": writer.indices(s).start}
-            writer.write_manifest(done, skipped)
-            meter.shard(f"{shard_name(s)}: {count} samples ({len(done)}/{writer.num_shards} shards)")
+        man = writer.run(make_sample, on_shard=on_shard, plan=(todo, done, skipped))
     finally:
         if pool is not None:
             pool.terminate()
             pool.join()
     meter.close()
-    man = writer.write_manifest(done, skipped)
-    n = sum(e["samples"] for e in done.values())
-    _log(f"done: {n} samples in {len(done)} shards, {_hms(meter.elapsed())}" + (f", {len(skipped)} skipped" if skipped else ""))
+    n, lost = sum(e["samples"] for e in man["shards"].values()), len(man["skipped"])
+    _log(f"done: {n} samples in {len(man['shards'])} shards, {_hms(meter.elapsed())}" + (f", {lost} skipped" if lost else ""))
     return man
 
 

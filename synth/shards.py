@@ -23,7 +23,7 @@ from __future__ import annotations
 import io
 import json
 import tarfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,10 @@ from blsm.io import atomic_write, sha256_file
 MANIFEST = "manifest.json"
 FORMAT = "blsm-synth-shards"
 VERSION = 1
+
+
+class SkipSample(Exception):
+    """Raised by a ``make_sample`` callable to leave that sample out (the message is the reason)."""
 
 
 def sample_key(index: int) -> str:
@@ -166,8 +170,9 @@ class ShardWriter:
         _write_json_atomic(self.out / MANIFEST, man)
         return man
 
-    def pending(self, resume: bool) -> tuple[list[int], dict[str, Any]]:
-        """The shards still to make and the finished ones' manifest entries.
+    def pending(self, resume: bool) -> tuple[list[int], dict[str, Any], list[dict[str, Any]]]:
+        """The shards still to make, the finished ones' manifest entries, and the samples the
+        manifest lists as skipped in those finished shards.
 
         Without ``resume`` the folder must not hold a dataset yet. With it, the manifest must
         describe the same run (seed, count, shard size, config); a shard is kept only when its file
@@ -177,9 +182,9 @@ class ShardWriter:
         if not resume:
             if man_path.exists() or any(self.out.glob("shard-*.tar")):
                 raise ValueError(f"{self.out}: already holds a dataset; use --resume or another --out")
-            return list(range(self.num_shards)), {}
+            return list(range(self.num_shards)), {}, []
         if not man_path.exists():
-            return list(range(self.num_shards)), {}
+            return list(range(self.num_shards)), {}, []
         try:
             man = json.loads(man_path.read_text())
         except (OSError, json.JSONDecodeError) as exc:
@@ -198,7 +203,9 @@ class ShardWriter:
             if p.is_file() and sha256_file(p) == entry.get("sha256"):
                 done[name] = entry
         todo = [s for s in range(self.num_shards) if shard_name(s) not in done]
-        return todo, done
+        kept = {i for s in range(self.num_shards) if shard_name(s) in done for i in self.indices(s)}
+        skipped = [e for e in man.get("skipped", []) if e.get("index") in kept]
+        return todo, done, skipped
 
     def run(
         self,
@@ -206,27 +213,42 @@ class ShardWriter:
         resume: bool = False,
         on_shard: Callable[[int, int], None] | None = None,
         stop_after: int | None = None,
+        plan: tuple[list[int], dict[str, Any], list[dict[str, Any]]] | None = None,
     ) -> dict[str, Any]:
         """Make every pending shard; return the final manifest.
 
         Args:
             make_sample: ``(index, rng) -> {field: bytes}``; ``rng`` is ``sample_rng(seed, index)``.
+                Raising :class:`SkipSample` leaves the sample out of its shard and lists it, with
+                the reason, in the manifest's ``skipped``.
             resume: continue a previous run into the same folder.
             on_shard: optional ``(shard, samples_in_it)`` callback after each shard (progress).
             stop_after: stop after this many shards (simulates an interruption in tests).
+            plan: what :meth:`pending` returned, when the caller checked the folder before
+                starting (``resume`` is then not looked at).
         """
         self.out.mkdir(parents=True, exist_ok=True)
-        todo, done = self.pending(resume)
+        todo, done, skipped = plan if plan is not None else self.pending(resume)
+        skipped = list(skipped)
         for count, s in enumerate(todo):
             if stop_after is not None and count >= stop_after:
                 break
-            idx = self.indices(s)
-            digest = write_shard(
-                self.out / shard_name(s),
-                ((i, make_sample(i, sample_rng(self.seed, i))) for i in idx),
-            )
-            done[shard_name(s)] = {"sha256": digest, "samples": len(idx), "first": idx.start}
-            self.write_manifest(done)
+            idx, left_out = self.indices(s), []
+            digest = write_shard(self.out / shard_name(s), self._samples(make_sample, idx, left_out))
+            skipped += left_out
+            done[shard_name(s)] = {"sha256": digest, "samples": len(idx) - len(left_out), "first": idx.start}
+            self.write_manifest(done, skipped)
             if on_shard is not None:
-                on_shard(s, len(idx))
-        return self.write_manifest(done)
+                on_shard(s, len(idx) - len(left_out))
+        return self.write_manifest(done, skipped)
+
+    def _samples(
+        self, make_sample: Callable[[int, np.random.Generator], dict[str, bytes]], idx: range, left_out: list
+    ) -> Iterator[tuple[int, dict[str, bytes]]]:
+        for i in idx:
+            try:
+                fields = make_sample(i, sample_rng(self.seed, i))
+            except SkipSample as exc:
+                left_out.append({"index": i, "reason": str(exc)})
+                continue
+            yield i, fields

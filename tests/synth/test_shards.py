@@ -10,6 +10,7 @@ import pytest
 from synth.shards import (
     MANIFEST,
     ShardWriter,
+    SkipSample,
     read_shard,
     sample_key,
     sample_rng,
@@ -104,3 +105,18 @@ def test_failed_sample_leaves_no_shard(tmp_path):
     with pytest.raises(ValueError, match="bad field name"):
         write_shard(tmp_path / "x.tar", [(0, {"a/b": b"1"})])
     assert not (tmp_path / "x.tar").exists()
+
+
+def test_skipped_samples_are_left_out_and_listed_across_a_resume(tmp_path):
+    def skip_seven(index, rng):
+        if index == 7:
+            raise SkipSample("unlucky")
+        return make_sample(index, rng)
+
+    w = writer(tmp_path)
+    w.run(skip_seven, stop_after=2)
+    man = writer(tmp_path).run(skip_seven, resume=True)
+    assert man["complete"] and man["skipped"] == [{"index": 7, "reason": "unlucky"}]
+    assert man["shards"][shard_name(1)]["samples"] == 4
+    assert sample_key(7) not in read_shard(tmp_path / "ds" / shard_name(1))
+    assert sum(e["samples"] for e in man["shards"].values()) == 22
