@@ -432,14 +432,21 @@ def auto_camera(
 # --------------------------------------------------------------------------
 
 
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+def _unit_float(c: np.ndarray) -> np.ndarray:
+    c = np.asarray(c)
+    return np.clip(c if c.dtype.kind == "f" else c.astype(np.float64), 0.0, 1.0)
 
 
-def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    c = np.clip(c, 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055)
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB values to linear (IEC 61966-2-1), clipped to [0, 1]; float arrays keep their dtype."""
+    c = _unit_float(c)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(c.dtype, copy=False)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """Linear values to sRGB (IEC 61966-2-1), clipped to [0, 1]; float arrays keep their dtype."""
+    c = _unit_float(c)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1.0 / 2.4) - 0.055).astype(c.dtype, copy=False)
 
 
 def _as_rgb(value: Sequence[float], what: str) -> np.ndarray:
@@ -491,7 +498,7 @@ def _validate_vertex_colors(i: int, vc: np.ndarray, n_verts: int) -> np.ndarray:
     arr = arr.astype(np.float64) / 255.0 if arr.dtype == np.uint8 else arr.astype(np.float64)
     if not np.isfinite(arr).all():
         raise ValueError(f"vertex_colors[{i}] contains NaN/inf.")
-    return _srgb_to_linear(arr).astype(np.float32)
+    return srgb_to_linear(arr).astype(np.float32)
 
 
 def _to_world_matrix(camera: Camera) -> np.ndarray:
@@ -743,7 +750,7 @@ def render_meshes(
         )
     palette = DEFAULT_PALETTE
     albedo = [
-        _srgb_to_linear(
+        srgb_to_linear(
             _as_rgb(colors[i] if colors is not None else palette[i % len(palette)], f"colors[{i}]")
         )
         for i in range(n)
@@ -754,7 +761,7 @@ def render_meshes(
             None if vc is None else _validate_vertex_colors(i, vc, clean[i][0].shape[0])
             for i, vc in enumerate(vertex_colors)
         ]
-    bg_lin = _srgb_to_linear(_as_rgb(background, "background")).astype(np.float32)
+    bg_lin = srgb_to_linear(_as_rgb(background, "background")).astype(np.float32)
     _sensor_params(camera)  # validate intrinsics before touching mitsuba
 
     variant = _resolve_variant(variant)
@@ -764,7 +771,7 @@ def render_meshes(
     rgba = renderer.render(clean, albedo, vcols, camera, spp_eff)
     rgb, alpha = rgba[..., :3], np.clip(rgba[..., 3:4], 0.0, 1.0)
     linear = rgb + (1.0 - alpha) * bg_lin  # film rgb is already alpha-weighted (emitters hidden)
-    return _linear_to_srgb(linear).astype(np.float32)
+    return linear_to_srgb(linear).astype(np.float32)
 
 
 def save_png(image: np.ndarray, path: str | os.PathLike[str]) -> Path:

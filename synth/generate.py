@@ -30,7 +30,8 @@ from synth import format as fmt
 from synth import labels as lab
 from synth.camera import sample_camera
 from synth.config import GeneratorConfig
-from synth.render import PeopleRenderer, RenderMesh, linear_to_srgb, srgb_to_linear
+from blsm.render import linear_to_srgb, srgb_to_linear
+from synth.render import PeopleRenderer, RenderMesh
 from synth.shards import ShardWriter, SkipSample, sample_rng, shard_name
 from synth.subjects import Subject, anny_subject, load_subject, pose_subject, save_subject
 

@@ -26,16 +26,6 @@ import numpy as np
 from blsm.render import Camera, _mitsuba, _resolve_variant, _sensor_params, _to_world_matrix
 
 
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.asarray(c, dtype=np.float32)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    c = np.clip(np.asarray(c, dtype=np.float32), 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055).astype(np.float32)
-
-
 @dataclass(frozen=True)
 class RenderMesh:
     """A person's mesh prepared for Mitsuba: vertices split at UV seams.
@@ -217,9 +207,10 @@ class PeopleRenderer:
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
         if len(vertices) != len(self.meshes) or len(textures) != len(self.meshes):
             raise ValueError(f"need {len(self.meshes)} meshes and textures, got {len(vertices)}, {len(textures)}")
-        # The first update of a loaded scene leaves some values as JIT literals that later updates
-        # make opaque, which changes the compiled kernel and a few pixels of the image; assigning
-        # everything twice on first use makes every image independent of the scene's history.
+        # The first update of a freshly loaded scene renders a few pixels differently from every
+        # later update of the same values (observed; making every scene value opaque at load time
+        # does not remove it). Assigning twice on first use makes each image independent of the
+        # scene's history, so shards are byte-identical across workers and resumed runs.
         for _ in range(1 if self._warm else 2):
             self._assign(vertices, textures, camera, env, env_rotation, env_scale)
         self._warm = True

@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from blsm.render import linear_to_srgb, srgb_to_linear
+
 TOPS = ("tshirt", "longsleeve", "tank")
 BOTTOMS = ("trousers", "shorts", "skirt", "capris")
 SHOES = ("shoes", "barefoot")
@@ -58,18 +60,9 @@ _HEX = {  # sRGB of everyday colours: navy, grey, charcoal, black, white, burgun
 }
 
 
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def _linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    c = np.clip(c, 0.0, 1.0)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-
-
 def _palette(name: str) -> np.ndarray:
     rgb = [[int(h[i : i + 2], 16) / 255 for i in (0, 2, 4)] for h in _HEX[name].split()]
-    return _srgb_to_linear(np.array(rgb))
+    return srgb_to_linear(np.array(rgb))
 
 
 def _rgb(c: np.ndarray) -> tuple[float, float, float]:
@@ -122,7 +115,7 @@ def _garment_colour(rng: np.random.Generator, palette: str, p_random: float) -> 
     if rng.uniform() < p_random:  # a random saturated colour (HSV, in sRGB)
         h, s, v = rng.uniform(), rng.uniform(0.45, 0.95), rng.uniform(0.35, 0.95)
         rgb = np.clip(np.abs((h * 6 + np.array([0.0, 4.0, 2.0])) % 6 - 3) - 1, 0, 1)
-        return _srgb_to_linear(v * (1 - s + s * rgb))
+        return srgb_to_linear(v * (1 - s + s * rgb))
     pal = _palette(palette)
     return pal[rng.integers(len(pal))] * rng.uniform(0.92, 1.08, 3)
 
@@ -130,8 +123,8 @@ def _garment_colour(rng: np.random.Generator, palette: str, p_random: float) -> 
 def _alt_colour(rng: np.random.Generator, base: np.ndarray) -> np.ndarray:
     alt = _garment_colour(rng, "tops", 0.5) if rng.uniform() < 0.5 else np.full(3, rng.choice([0.01, 0.85]))
     lum = np.array([0.2126, 0.7152, 0.0722])
-    if abs((_linear_to_srgb(alt) - _linear_to_srgb(base)) @ lum) < 0.25:  # keep some contrast
-        alt = np.full(3, 0.02 if _linear_to_srgb(base) @ lum > 0.5 else 0.8)
+    if abs((linear_to_srgb(alt) - linear_to_srgb(base)) @ lum) < 0.25:  # keep some contrast
+        alt = np.full(3, 0.02 if linear_to_srgb(base) @ lum > 0.5 else 0.8)
     return alt
 
 
@@ -392,4 +385,4 @@ def make_albedo(
     iy, ix = ndimage.distance_transform_edt(
         empty.reshape(size, size), return_distances=False, return_indices=True
     )
-    return np.round(_linear_to_srgb(img.reshape(size, size, 3)[iy, ix]) * 255).astype(np.uint8)
+    return np.round(linear_to_srgb(img.reshape(size, size, 3)[iy, ix]) * 255).astype(np.uint8)
