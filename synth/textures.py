@@ -30,6 +30,7 @@ import numpy as np
 from scipy import ndimage
 
 from blsm.render import linear_to_srgb, srgb_to_linear
+from synth.raster import rasterise
 
 TOPS = ("tshirt", "longsleeve", "tank")
 BOTTOMS = ("trousers", "shorts", "skirt", "capris")
@@ -168,29 +169,9 @@ def _rasterise(uv: np.ndarray, faces_uv: np.ndarray, size: int):
     """(texel (N,), face (N,), barycentric (N, 3)) of the texel centres inside UV triangles (later
     faces win), and each face's doubled UV area in texels (F,)."""
     tri = np.stack([uv[faces_uv, 0] * size - 0.5, (1 - uv[faces_uv, 1]) * size - 0.5], -1)  # (F, 3, 2)
-    lo = np.clip(np.ceil(tri.min(1)), 0, size - 1).astype(np.int64)
-    hi = np.clip(np.floor(tri.max(1)), 0, size - 1).astype(np.int64)
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    nx, ny = np.maximum(hi - lo + 1, 0).T
-    n = np.where(np.abs(det) > 1e-12, nx * ny, 0)
-    with np.errstate(divide="ignore", invalid="ignore"):  # b1, b2 = coef @ (cx, cy) + off
-        coef = np.stack([e2[:, 1], -e2[:, 0], -e1[:, 1], e1[:, 0]], 1) / det[:, None]
-    off = -(coef.reshape(-1, 2, 2) @ tri[:, 0, :, None])[..., 0]
-    fid = np.repeat(np.arange(len(tri)), n)  # one candidate per texel of each face's bounding box
-    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-    w = np.take(nx, fid)
-    cx, cy = np.take(lo[:, 0], fid) + k % w, np.take(lo[:, 1], fid) + k // w
-    c, o = np.take(coef, fid, axis=0), np.take(off, fid, axis=0)
-    b1 = c[:, 0] * cx + c[:, 1] * cy + o[:, 0]
-    b2 = c[:, 2] * cx + c[:, 3] * cy + o[:, 1]
-    inside = np.flatnonzero((b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1 + 1e-9))
-    where = np.full(size * size, -1, np.int64)
-    where[cy[inside] * size + cx[inside]] = inside
-    texels = np.flatnonzero(where >= 0)
-    sel = where[texels]
-    b1, b2 = b1[sel], b2[sel]
-    return texels, fid[sel], np.stack([1 - b1 - b2, b1, b2], 1), np.abs(det)
+    texels, face, bary = rasterise(tri, size, size, eps=1e-9)
+    return texels, face, bary, np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
 
 def _noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:

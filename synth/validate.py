@@ -28,6 +28,7 @@ import numpy as np
 from blsm.io import sha256_file
 from blsm.render import Camera
 from synth import format as fmt
+from synth.raster import rasterise
 from synth.shards import MANIFEST, read_shard
 
 REPROJ_PX = 0.01
@@ -47,25 +48,9 @@ class Report:
 
 def coverage(verts2d: np.ndarray, faces: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H, W) bool: pixel centres inside any of the projected triangles (either winding)."""
-    tri = verts2d[faces] - 0.5  # pixel (u, v) has its centre at (u + 0.5, v + 0.5)
-    lo = np.clip(np.ceil(tri.min(1)), 0, [width - 1, height - 1]).astype(np.int64)
-    hi = np.clip(np.floor(tri.max(1)), 0, [width - 1, height - 1]).astype(np.int64)
-    inside_img = (tri.max(1) >= 0).all(1) & (tri.min(1)[:, 0] <= width - 1) & (tri.min(1)[:, 1] <= height - 1)
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    nx, ny = np.maximum(hi - lo + 1, 0).T
-    n = np.where((np.abs(det) > 1e-12) & inside_img, nx * ny, 0)
     out = np.zeros(height * width, bool)
-    fid = np.repeat(np.arange(len(tri)), n)
-    if fid.size == 0:
-        return out.reshape(height, width)
-    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
-    cx, cy = lo[fid, 0] + k % nx[fid], lo[fid, 1] + k // nx[fid]
-    dx, dy = cx - tri[fid, 0, 0], cy - tri[fid, 0, 1]
-    b1 = (dx * e2[fid, 1] - dy * e2[fid, 0]) / det[fid]
-    b2 = (e1[fid, 0] * dy - e1[fid, 1] * dx) / det[fid]
-    ok = (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1)
-    out[cy[ok] * width + cx[ok]] = True
+    # Pixel (u, v) has its centre at (u + 0.5, v + 0.5).
+    out[rasterise(verts2d[faces] - 0.5, width, height)[0]] = True
     return out.reshape(height, width)
 
 
