@@ -34,7 +34,7 @@ def rasterise(
     n = np.where((np.abs(det) > 1e-12) & finite, nx * ny, 0)
     with np.errstate(divide="ignore", invalid="ignore"):  # b1, b2 = coef @ (cx, cy) + off
         coef = np.stack([e2[:, 1], -e2[:, 0], -e1[:, 1], e1[:, 0]], 1) / det[:, None]
-    off = -(coef.reshape(-1, 2, 2) @ tri[:, 0, :, None])[..., 0]
+        off = -(coef.reshape(-1, 2, 2) @ tri[:, 0, :, None])[..., 0]
     fid = np.repeat(np.arange(len(tri)), n)  # one candidate per pixel of each face's bounding box
     k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
     w = np.take(nx, fid)
