@@ -289,11 +289,6 @@ class DatasetIndex:
         return {**self.__dict__, "_files": {}, "_pid": -1}
 
 
-def _seen(person: dict[str, Any]) -> np.ndarray:
-    """(K,) bool: the person's keypoints that are in frame and visible."""
-    return np.asarray(person["visible"], bool) & np.asarray(person["in_frame"], bool)
-
-
 @functools.cache
 def _model() -> Any:
     import blsm
@@ -385,7 +380,7 @@ class SynthDataset(torch.utils.data.Dataset):
                     raise ValueError("keypoint_names differ from the first sample's")
                 people = meta["people"]
                 ok = [p for p, q in enumerate(people) if q["pixels"] >= min_pixels]
-                ok = [p for p in ok if _seen(people[p])[sel].sum() >= min_visible]
+                ok = [p for p in ok if fmt.seen_keypoints(people[p])[sel].sum() >= min_visible]
             except (KeyError, IndexError, TypeError, ValueError) as exc:
                 raise ValueError(f"{self.index.where(i)}.json: bad labels ({exc})") from None
             if person == "largest" and ok:
@@ -479,9 +474,9 @@ class SynthDataset(torch.utils.data.Dataset):
             q, cam, b = meta["people"][p], meta["camera"], meta["people"][p]["blsm"]
             orient = torch.tensor([b["global_orient"]], dtype=torch.float64)
             lab = {
-                "box": [float(v) for v in (q.get("box") or q["box_full"])],
+                "box": fmt.person_box(q),
                 "kp2": np.asarray(q["keypoints_2d"], np.float64)[self._sel],
-                "vis": _seen(q)[self._sel],
+                "vis": fmt.seen_keypoints(q)[self._sel],
                 "kp3": np.asarray(q["keypoints_3d_cam"], np.float64),
                 "K": np.asarray(cam["K"], np.float64),
                 "R": np.asarray(cam["R"], np.float64),
@@ -494,8 +489,8 @@ class SynthDataset(torch.utils.data.Dataset):
             }
             if lab["pose"].shape != self._dof_perm.shape or lab["angles"].shape != self._dof_perm.shape:
                 raise ValueError(f"pose and angles must be {self._dof_perm.shape}")
-            if lab["K"].shape != (3, 3) or lab["R"].shape != (3, 3) or len(lab["box"]) != 4:
-                raise ValueError("camera K and R must be 3x3 and box 4 numbers")
+            if lab["K"].shape != (3, 3) or lab["R"].shape != (3, 3):
+                raise ValueError("camera K and R must be 3x3")
         except (KeyError, IndexError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}.json: bad labels of person {p} ({exc})") from None
         return rgb, mask == p + 1, parts, lab

@@ -103,11 +103,6 @@ def rle_encode(mask: np.ndarray) -> dict[str, Any]:
     return {"counts": [int(c) for c in counts], "size": [int(mask.shape[0]), int(mask.shape[1])]}
 
 
-def _box(q: dict[str, Any]) -> tuple[float, float, float, float]:
-    x0, y0, x1, y1 = (float(v) for v in (q.get("box") or q["box_full"]))
-    return x0, y0, x1, y1
-
-
 def _camera_orient(orient: np.ndarray, rot: np.ndarray) -> np.ndarray:
     """(N, 3) axis-angle ``global_orient`` and (N, 3, 3) ``R`` to camera-frame axis-angle."""
     rg = axis_angle_to_rotation_matrix(torch.as_tensor(orient, dtype=torch.float64))
@@ -118,14 +113,14 @@ def _spin_row(
     meta: dict[str, Any], q: dict[str, Any], names: list[str], scale_factor: float
 ) -> dict[str, Any]:
     kp2, kp3 = np.asarray(q["keypoints_2d"], np.float64), np.asarray(q["keypoints_3d_cam"], np.float64)
-    vis = np.asarray(q["visible"], bool) & np.asarray(q["in_frame"], bool)
+    vis = sample_format.seen_keypoints(q)
     part, s3 = np.zeros((24, 3)), np.zeros((24, 4))
     for j, (_, ours) in enumerate(SPIN_KEYPOINTS):
         if ours is not None and ours in names:
             k = names.index(ours)
             part[j] = [*kp2[k], float(vis[k])]
             s3[j] = [*kp3[k], 1.0]
-    x0, y0, x1, y1 = _box(q)
+    x0, y0, x1, y1 = sample_format.person_box(q)
     b = q["blsm"]
     return {
         "center": [(x0 + x1) / 2, (y0 + y1) / 2],
@@ -151,7 +146,7 @@ def _coco_ann(q: dict[str, Any], names: list[str], own: np.ndarray) -> dict[str,
         k = names.index(n)
         v = 2 if vis[k] and in_frame[k] else 1 if in_frame[k] else 0
         flat += [float(kp2[k, 0]), float(kp2[k, 1]), v] if v else [0.0, 0.0, 0]
-    x0, y0, x1, y1 = _box(q)
+    x0, y0, x1, y1 = sample_format.person_box(q)
     return {
         "category_id": 1,
         "keypoints": flat,

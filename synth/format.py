@@ -99,6 +99,17 @@ BONE_PALETTE = _bone_palette()
 """Background black, then one colour per bone in ``BONE_NAMES`` order."""
 
 
+def seen_keypoints(person: dict[str, Any]) -> np.ndarray:
+    """(K,) bool: a person's keypoints that are in frame and visible (``visible & in_frame``)."""
+    return np.asarray(person["visible"], bool) & np.asarray(person["in_frame"], bool)
+
+
+def person_box(person: dict[str, Any]) -> tuple[float, float, float, float]:
+    """``(x0, y0, x1, y1)``: the person's visible ``box``, or ``box_full`` when nothing is visible."""
+    x0, y0, x1, y1 = (float(v) for v in (person.get("box") or person["box_full"]))
+    return x0, y0, x1, y1
+
+
 # ------------------------------------------------------------------------------------------------
 # Encoders (deterministic bytes: the same arrays always give the same bytes)
 
