@@ -34,7 +34,7 @@ import torch
 from blsm import io, skeleton
 from blsm.joint_limits import DEFAULT_DOF_TABLE, load_dof_table
 from blsm.kinematics import forward_kinematics, local_scales
-from blsm.lbs import linear_blend_skinning
+from blsm.lbs import linear_blend_skinning, unskin
 
 # Anny bones folded into each BLSM bone; the first one gives the BLSM bone's head.
 ANNY_BONES: dict[str, tuple[str, ...]] = {
@@ -301,10 +301,9 @@ def build(
     b = 1.0 + c_b @ bone_basis  # (N, J)
     parents = np.array(skeleton.BONE_PARENTS)
     lin, off = (t.numpy() for t in _scaled_chain(b, heads_t, frames))
-    # Un-skinning inverts the blended transform of Eq. 12 per vertex.
-    blend_l = np.einsum("vj,njkl->nvkl", weights, lin)
-    blend_t = np.einsum("vj,njk->nvk", weights, off)
-    unposed = np.linalg.solve(blend_l, (bodies - blend_t)[..., None])[..., 0]
+    f64 = torch.float64
+    transforms = torch.as_tensor(np.concatenate([lin, off[..., None]], axis=-1), dtype=f64)
+    unposed = unskin(torch.as_tensor(bodies, dtype=f64), torch.as_tensor(weights, dtype=f64), transforms).numpy()
     delta = (unposed - template).reshape(n_bodies, -1)
     gram = c_b.T @ c_b + ridge * n_bodies * np.eye(num_bone_coeffs)
     correctives = np.linalg.solve(gram, c_b.T @ delta)  # (Kb, 3V)

@@ -76,3 +76,20 @@ def linear_blend_skinning(
     mat = blended[..., :9].reshape(batch, -1, 3, 3)
     moved = (mat @ vertices[..., None])[..., 0]  # (B, V, 3)
     return vertices + moved + blended[..., 9:]
+
+
+def unskin(posed: torch.Tensor, weights: torch.Tensor, transforms: torch.Tensor) -> torch.Tensor:
+    """The inverse of Eq. 12 per vertex: rest positions ``T`` with ``sum_j w_ij (L_j T_i + t_j)``
+    equal to the posed positions (each vertex's blended transform ``A_i = sum_j w_ij [L_j | t_j]``
+    solved, not the blend of the inverses).
+
+    Args:
+        posed: (..., V, 3) posed positions.
+        weights: (V, J) skinning weights.
+        transforms: (..., J, 3, 4) skinning transforms ``[L_j | t_j]``.
+
+    Returns:
+        (..., V, 3) rest positions.
+    """
+    blend = torch.einsum("vj,...jab->...vab", weights, transforms)  # (..., V, 3, 4)
+    return torch.linalg.solve(blend[..., :3], (posed - blend[..., 3])[..., None])[..., 0]

@@ -33,6 +33,7 @@ import torch
 from blsm import io as blsm_io
 from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
 from blsm.kinematics import joint_rotations
+from blsm.lbs import unskin
 from blsm.model import BLSM
 from synth.subjects import Subject, check_registration, rig_subject
 
@@ -261,8 +262,8 @@ def _initial_pose(model: BLSM, target: np.ndarray) -> tuple[torch.Tensor, torch.
     rots = []
     for j in range(model.num_joints):  # Kabsch of the vertices bone j dominates, rest -> target
         sel = np.flatnonzero(w[:, j] > 0.5) if (w[:, j] > 0.5).sum() >= 10 else np.argsort(-w[:, j])[:30]
-        u, _, vt = np.linalg.svd((target[sel] - target[sel].mean(0)).T @ (rest[sel] - rest[sel].mean(0)))
-        rots.append(u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt)
+        a, b = target[sel] - target[sel].mean(0), rest[sel] - rest[sel].mean(0)
+        rots.append(Rotation.align_vectors(a, b)[0].as_matrix())
     g, q = np.stack(rots), model.frames.double().numpy()
     # World rotations chain as G_j = G_parent Q_j R_j Q_j^T (blsm.kinematics): R_j = Q^T G_p^T G_j Q.
     local = [np.eye(3) if p < 0 else q[j].T @ g[p].T @ g[j] @ q[j] for j, p in enumerate(model.parents)]
@@ -283,36 +284,6 @@ def _initial_pose(model: BLSM, target: np.ndarray) -> tuple[torch.Tensor, torch.
     return torch.tensor(orient, dtype=torch.float32)[None], x.detach()
 
 
-def _levenberg_marquardt(
-    f: Any, theta: torch.Tensor, goal: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, iterations: int
-) -> torch.Tensor:
-    """Minimise ``||f(theta) - goal||^2`` in the box [lo, hi] (steps are clipped into it).
-
-    f maps (B, P) to (B, N); the Jacobian is a one-sided difference pointing into the box.
-    """
-    mu, eye = 1e-3, torch.eye(len(theta), dtype=theta.dtype)
-    r = f(theta[None])[0] - goal
-    cost = r @ r
-    for _ in range(iterations):
-        h = torch.full_like(theta, 1e-6).where(theta + 1e-6 <= hi, -1e-6)
-        fx = f(torch.cat([theta[None], theta + torch.diag(h)]))  # one batched pass for all P columns
-        jac = ((fx[1:] - fx[0]) / h[:, None]).T  # (N, P)
-        jtj, grad = jac.T @ jac, jac.T @ (fx[0] - goal)
-        while mu < 1e10:
-            step = torch.linalg.solve(jtj + mu * torch.diag(jtj.diagonal()) + 1e-12 * eye, -grad)
-            new = torch.minimum(torch.maximum(theta + step, lo), hi)
-            r = f(new[None])[0] - goal
-            if r @ r < cost:
-                break
-            mu *= 4.0
-        else:
-            break
-        theta, gain, cost, mu = new, cost - r @ r, r @ r, mu / 3.0
-        if gain <= 1e-10 * (cost + gain) or cost < 1e-14 * len(goal):
-            break
-    return theta
-
-
 def fit_posed_registration(
     model: BLSM, target: np.ndarray, iterations: int = 40
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
@@ -320,22 +291,25 @@ def fit_posed_registration(
 
     Staged: (1) the rotation of each bone's rigid core (Kabsch) gives ``global_orient`` and, by an
     Adam fit of the joint rotations in the unconstrained x of Eq. 6, the angles; ``transl`` matches
-    the centroids; (2) damped Gauss-Newton (Levenberg-Marquardt, float64) on the vertex distances
-    over all of ``global_orient``, ``transl``, the angles (kept inside their limits), bone and shape
-    coefficients. (Adam on the vertex distances from the rest pose, or pose before shape, stops in
+    the centroids; (2) bounded nonlinear least squares (``scipy.optimize.least_squares``, trust
+    region reflective, float64) on the vertex distances over all of ``global_orient``, ``transl``,
+    the angles (inside their limits), bone and shape coefficients, with a forward-difference
+    Jacobian from one batched model pass. (Adam on the vertex distances from the rest pose, or pose before shape, stops in
     local minima millimetres off; so does Gauss-Newton in x, whose atoms saturate at a limit.) The
     displacements are then ``D_i = A_i^-1 (target_i - b_i) - T_i`` with the blended transform of
     vertex i, as in :func:`synth.subjects.fit_registration`.
 
     Args:
         target: (Vb, 3) posed body in the model's topology, metres.
-        iterations: Levenberg-Marquardt iterations at most.
+        iterations: residual evaluations of the least-squares solve at most.
 
     Returns:
         The registration (``angles`` in radians) and a report: ``fit_mean_mm`` and ``fit_max_mm``
         (vertex error before displacements).
     """
     import copy
+
+    from scipy.optimize import least_squares
 
     goal = np.asarray(target, np.float64)
     orient, x = _initial_pose(model, goal)
@@ -348,9 +322,9 @@ def fit_posed_registration(
     sizes.update(bone=model.num_bone_coeffs, shape=model.num_shape_coeffs)
     nb = sizes["bone"] + sizes["shape"]
     start = torch.cat([orient[0].double(), transl, angles[0], torch.zeros(nb, dtype=torch.float64)])
-    inf = torch.full((6,), torch.inf, dtype=torch.float64)
-    lo = torch.cat([-inf, m64.dof_limits[:, 0], -inf[:1].expand(nb)])
-    hi = torch.cat([inf, m64.dof_limits[:, 1], inf[:1].expand(nb)])
+    limits = m64.dof_limits.numpy()
+    lo = np.concatenate([np.full(6, -np.inf), limits[:, 0], np.full(nb, -np.inf)])
+    hi = np.concatenate([np.full(6, np.inf), limits[:, 1], np.full(nb, np.inf)])
 
     def unpack(t: torch.Tensor) -> dict[str, torch.Tensor]:
         return dict(zip(sizes, torch.split(t, list(sizes.values()), dim=1), strict=True))
@@ -358,16 +332,25 @@ def fit_posed_registration(
     def vertices(t: torch.Tensor) -> torch.Tensor:  # (B, P) parameters -> (B, 3 Vb)
         return m64(**unpack(t)).vertices.reshape(len(t), -1)
 
+    flat = goal.ravel()
+
+    @torch.no_grad()
+    def residual(t: np.ndarray) -> np.ndarray:
+        return vertices(torch.from_numpy(t)[None])[0].numpy() - flat
+
+    @torch.no_grad()
+    def jacobian(t: np.ndarray) -> np.ndarray:  # (3 Vb, P), every column from one batched pass
+        h = np.where(t + 1e-6 <= hi, 1e-6, -1e-6)  # step into the box
+        fx = vertices(torch.from_numpy(np.concatenate([t[None], t + np.diag(h)]))).numpy()
+        return ((fx[1:] - fx[0]) / h[:, None]).T
+
+    fit = least_squares(residual, start.numpy(), jac=jacobian, bounds=(lo, hi), method="trf", max_nfev=iterations)
     with torch.no_grad():
-        theta = _levenberg_marquardt(vertices, start, torch.as_tensor(goal).ravel(), lo, hi, iterations)
-        p = {k: v.float() for k, v in unpack(theta[None]).items()}
+        p = {k: v.float() for k, v in unpack(torch.from_numpy(fit.x)[None]).items()}
         out = model(**p)
         err = np.linalg.norm(out.vertices[0].numpy() - goal, axis=1) * 1000.0
-        tr = out.skinning_transforms[0].numpy().astype(np.float64)
-        w = model.weights.numpy().astype(np.float64)
-        a = np.einsum("vj,jab->vab", w, tr[:, :, :3])
-        b = w @ tr[:, :, 3]
-        disp = np.linalg.solve(a, (goal - b)[..., None])[..., 0] - out.template[0].numpy()
+        rest = unskin(torch.as_tensor(goal), model.weights.double(), out.skinning_transforms[0].double())
+        disp = rest.numpy() - out.template[0].numpy()
     reg = {k: p[k][0].numpy() for k in ("bone", "shape", "global_orient", "transl")}
     reg.update(angles=out.angles[0].numpy(), displacement=disp)
     report = {"fit_mean_mm": float(err.mean()), "fit_max_mm": float(err.max())}

@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from blsm import io as blsm_io
-from blsm.lbs import linear_blend_skinning
+from blsm.lbs import linear_blend_skinning, unskin
 from blsm.model import BLSM
 
 FORMAT = "blsm-subject"
@@ -427,12 +427,9 @@ def fit_registration(model: BLSM, target: np.ndarray, steps: int = 300) -> tuple
     with torch.no_grad():
         out = model(bone=bone, shape=shape, transl=transl)
         err = (out.vertices - tgt).norm(dim=-1).mean().item() * 1000.0
-        tr = out.skinning_transforms[0].numpy().astype(np.float64)
-        w = model.weights.numpy().astype(np.float64)
-        a = np.einsum("vj,jab->vab", w, tr[:, :, :3])
-        b = w @ tr[:, :, 3]
-        rest = np.linalg.solve(a, (target - b)[..., None])[..., 0]
-        disp = rest - out.template[0].numpy()
+        f64 = torch.float64
+        rest = unskin(torch.as_tensor(target, dtype=f64), model.weights.to(f64), out.skinning_transforms[0].to(f64))
+        disp = rest.numpy() - out.template[0].numpy()
     reg = {
         "bone": bone.detach()[0].numpy(),
         "shape": shape.detach()[0].numpy(),
