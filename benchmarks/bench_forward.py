@@ -81,10 +81,6 @@ def main() -> int:
 
     if args.out is not None:
         lines = [
-            "## BLSM forward vs smplx `lbs()` (CPU)",
-            "",
-            "Command: `make bench` (runs `python benchmarks/bench_forward.py --out docs/benchmarks.md`).",
-            "",
             f"Measured {datetime.date.today().isoformat()} on {platform.machine()}, "
             f"{torch.get_num_threads()} torch threads, torch {torch.__version__}, "
             f"V = {v}, J = {j}, {nb} shape directions; median of {args.reps} calls, best of 3 "
@@ -102,7 +98,7 @@ def main() -> int:
             "directions; random inputs.",
             "",
         ]
-        write_section(args.out, "forward", lines)
+        write_section(args.out, "forward", "BLSM forward vs smplx `lbs()` (CPU)", "benchmarks/bench_forward.py", lines)
         print(f"wrote {args.out}")
     return 0
 

@@ -147,10 +147,6 @@ def main() -> int:
     if args.out is not None:
         fmt_rss = lambda xs: ", ".join(f"{x:.0f}" for x in xs)  # noqa: E731
         lines = [
-            "## Generator: `synth generate` vs bare `mi.render` (CPU), and memory",
-            "",
-            "Command: `make bench` (runs `python benchmarks/bench_synth.py --out docs/benchmarks.md`).",
-            "",
             f"Measured {datetime.date.today().isoformat()} on {platform.machine()}, {cores} cores, Mitsuba "
             f"{mitsuba.__version__} `{variant}`. The embedded default config: {cam.width} x {cam.height}, "
             f"{spp} spp, max depth {cfg.render.max_depth}, procedural sky, {args.subjects} Anny subjects "
@@ -179,7 +175,7 @@ def main() -> int:
             "(target: flat).",
             "",
         ]
-        write_section(args.out, "synth", lines)
+        write_section(args.out, "synth", "Generator: `synth generate` vs bare `mi.render` (CPU), and memory", "benchmarks/bench_synth.py", lines)
         print(f"wrote {args.out}")
     return 0
 

@@ -16,9 +16,12 @@ HEADER = [
 ]
 
 
-def write_section(path: Path, name: str, lines: list[str]) -> None:
+def write_section(path: Path, name: str, title: str, script: str, lines: list[str]) -> None:
+    """Replace (or append) section ``name``: a ``## title`` heading, the command that made it
+    (``make bench`` running ``script``), then ``lines``."""
     begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
-    block = "\n".join([begin, *lines, end])
+    head = [f"## {title}", "", f"Command: `make bench` (runs `python {script} --out {path}`).", ""]
+    block = "\n".join([begin, *head, *lines, end])
     text = path.read_text() if path.exists() else "\n".join(HEADER) + "\n"
     if begin in text and end in text:
         head, rest = text.split(begin, 1)

@@ -105,11 +105,10 @@ def _directions(width: int) -> tuple[np.ndarray, np.ndarray]:
     theta = (np.arange(h) + 0.5) / h * math.pi  # 0 at the zenith
     phi = (np.arange(width) + 0.5) / width * 2 * math.pi
     th, ph = np.meshgrid(theta, phi, indexing="ij")
-    d = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], axis=-1)
-    d.flags.writeable = False
+    d = np.stack([np.sin(th) * np.sin(ph), np.cos(th), np.sin(th) * np.cos(ph)], axis=-1).astype(np.float32)
     w = np.sin(theta)[:, None].astype(np.float32)
-    w.flags.writeable = False
-    return d.astype(np.float32), w
+    d.flags.writeable = w.flags.writeable = False  # cached: shared by every call
+    return d, w
 
 
 def procedural_sky(width: int, rng: np.random.Generator) -> tuple[np.ndarray, dict]:

@@ -490,7 +490,9 @@ def generate(
     meter = _Progress(len(indices), progress)
     init = (_cfg_json(cfg), str(out), variant, max(1, (os.cpu_count() or 1) // workers))
     pool = None
-    if workers == 1:
+    if not indices:  # a resumed run that is already complete: nothing to load
+        results = iter(())
+    elif workers == 1:
         _init_worker(*init)
         results = map(_make_in_process, indices)
     else:
