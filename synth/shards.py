@@ -9,10 +9,11 @@ Guarantees:
 
 - A shard appears only when complete: it is written to a hidden temporary file beside it
   (``.shard-000000.tar.tmp``) and renamed.
-- Shards are byte-reproducible: members are written in sorted order with fixed metadata (mtime 0,
-  uid/gid 0, mode 0644), and a sample's randomness comes only from :func:`sample_rng` with
-  ``(seed, index)``. The same config and seed therefore give the same bytes, and a resumed run
-  gives the same dataset as an uninterrupted one.
+- Shards are as reproducible as their samples: members are written in sorted order with fixed
+  metadata (mtime 0, uid/gid 0, mode 0644), and a sample's randomness comes only from
+  :func:`sample_rng` with ``(seed, index)``, so equal sample bytes give equal shard bytes and a
+  resumed run gives the same dataset as an uninterrupted one (for the generator's rare RGB
+  exception see :func:`synth.render.PeopleRenderer.render`).
 - The manifest (written atomically after every shard) records the config, the seed, package
   versions, counts and the SHA-256 of every finished shard. :func:`ShardWriter.resume` keeps the
   shards whose checksum matches and regenerates the rest.
