@@ -31,8 +31,10 @@ with x = y = 0), ``num_keypoints`` (v > 0), ``bbox`` ``[x, y, w, h]`` of the vis
 edges, ``area`` its pixel count, ``iscrowd`` 0 and ``segmentation`` the person's mask as
 uncompressed column-major RLE ``{"counts": [...], "size": [h, w]}`` (pycocotools' layout).
 
-The annotation file is written last and atomically (:func:`blsm.io.atomic_write`): its presence
-means a complete export. An existing one is an error unless ``overwrite``.
+Every label is read and checked before anything is written, so a bad sample leaves no output.
+The images are copied through a staging folder and moved into ``OUT/images`` only when all are
+there; the annotation file is written last and atomically (:func:`blsm.io.atomic_write`): its
+presence means a complete export. An existing one is an error unless ``overwrite``.
 """
 
 from __future__ import annotations
@@ -158,6 +160,25 @@ def _coco_ann(q: dict[str, Any], names: list[str], own: np.ndarray) -> dict[str,
     }
 
 
+def _copy_images(index: DatasetIndex, folder: Path) -> None:
+    """Every sample's ``rgb.png`` to ``folder/<key>.png``: written into a staging folder beside it
+    and moved in only when all are there; the staging folder is removed on any failure."""
+    import shutil
+    import tempfile
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=".images.", suffix=".tmp", dir=folder.parent))
+    try:
+        for i in range(len(index)):
+            key = index.samples[i][1]
+            (stage / f"{key}.png").write_bytes(index.read(i, ("rgb.png",))["rgb.png"])
+        folder.mkdir(exist_ok=True)
+        for f in sorted(stage.iterdir()):
+            f.replace(folder / f.name)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+
+
 def export(
     path: str | Path,
     fmt: str,
@@ -190,16 +211,15 @@ def export(
     target = out / (SPIN_FILE if fmt == "spin" else COCO_FILE)
     if target.exists() and not overwrite:
         raise ValueError(f"{target}: an export already exists; pass overwrite=True to replace it")
-    (out / "images").mkdir(parents=True, exist_ok=True)
+    # Pass 1 reads and checks every label before anything is written: bad labels leave no output.
     rows: list[dict[str, Any]] = []
     imgnames: list[str] = []
     coco: dict[str, Any] = {"images": [], "annotations": []}
     for i in range(len(index)):
         key, where = index.samples[i][1], index.where(i)
-        raw = index.read(i, ("json", "rgb.png") + (("mask.png",) if fmt == "coco" else ()))
+        raw = index.read(i, ("json",) + (("mask.png",) if fmt == "coco" else ()))
         meta = sample_format.decode_json(raw["json"], f"{where}.json")
         mask = sample_format.decode_png(raw["mask.png"], f"{where}.mask.png") if fmt == "coco" else None
-        (out / "images" / f"{key}.png").write_bytes(raw["rgb.png"])
         try:
             names = list(meta["keypoint_names"])
             if fmt == "coco":
@@ -224,6 +244,13 @@ def export(
                     coco["annotations"].append(ann)
         except (KeyError, IndexError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}.json: bad labels ({exc})") from None
+    if fmt == "spin" and not rows:
+        raise ValueError(
+            f"{index.root}: no person has {min_pixels} or more visible pixels; nothing to export"
+        )
+    # Pass 2 copies the images through a staging folder (a failed copy leaves none of them), then
+    # the annotation file is written last, atomically.
+    _copy_images(index, out / "images")
     if fmt == "coco":
         coco["categories"] = [
             {"id": 1, "name": "person", "supercategory": "person", "keypoints": list(COCO_KEYPOINTS),
@@ -233,10 +260,6 @@ def export(
         with atomic_write(target, "w") as f:
             json.dump(coco, f)
         return target
-    if not rows:
-        raise ValueError(
-            f"{index.root}: no person has {min_pixels} or more visible pixels; nothing to export"
-        )
     arrays: dict[str, np.ndarray] = {"imgname": np.array(imgnames, dtype=str)}
     for name in ("center", "scale", "part", "S", "pose", "angles", "bone", "shape", "transl_cam", "K"):
         arrays[name] = np.array([r[name] for r in rows], dtype=np.float64)

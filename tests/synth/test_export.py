@@ -135,3 +135,25 @@ def test_export_refuses_to_overwrite_and_bad_input_is_one_line(root, tmp_path, c
     assert main(["export", str(tmp_path / "missing"), "--format", "spin", "--out", str(tmp_path / "p")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("synth: error:") and "manifest.json" in err and "\n" not in err
+
+
+def test_bad_labels_in_a_late_sample_leave_no_output(tmp_path, model):
+    from fakes import make_sample
+
+    from synth.shards import ShardWriter
+
+    def sample(i, rng):
+        fields = make_sample(i, rng, model, (256, 240))
+        if i == 3:  # the last sample: every image before it would already have been copied
+            doc = json.loads(fields["json"])
+            del doc["people"][0]["keypoints_2d"]
+            fields["json"] = fmt.encode_json(doc)
+        return fields
+
+    root = tmp_path / "ds"
+    ShardWriter(out=root, num=4, shard_size=2, seed=0, config={"fake": True}).run(sample)
+    for f in ("spin", "coco"):
+        with pytest.raises(ValueError, match=r"shard-000001\.tar.*\.json: bad labels") as info:
+            export(root, f, tmp_path / "o")
+        assert "\n" not in str(info.value)
+        assert not (tmp_path / "o").exists() or not any((tmp_path / "o").rglob("*")), f
