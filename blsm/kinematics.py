@@ -137,7 +137,7 @@ def forward_kinematics(
     Args:
         rotations: (B, J, 3, 3) joint rotations R_j in bind-frame coordinates.
         scales: (B, J) local scales s_j (Eq. 5).
-        heads: (J, 3) bind-pose joint positions in metres.
+        heads: (J, 3) bind-pose joint positions in metres, or (B, J, 3) per body.
         frames: (J, 3, 3) bind frames Q_j (columns are axes in world coordinates).
         parents: parent index per bone, -1 for the root; parents precede children.
         global_rotation: optional (B, 3, 3) rotation of the whole body about the root joint.
@@ -158,7 +158,8 @@ def forward_kinematics(
     l_root, t_root = local[:, root], t_local[:, root]
     if global_rotation is not None:
         l_root = global_rotation[:, None] @ l_root
-        t_root = heads[root] - (l_root @ heads[root][..., None])[..., 0]
+        h_root = heads[..., root, :]
+        t_root = h_root - (l_root @ h_root[..., None])[..., 0]
     if transl is not None:
         t_root = t_root + transl[:, None]
     linear = local.index_copy(1, torch.as_tensor(root, device=local.device), l_root)
