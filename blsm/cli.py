@@ -246,18 +246,43 @@ def build_parser() -> argparse.ArgumentParser:
     from blsm.mocap.cli import add_parser as add_mocap
 
     add_mocap(sub)
+    # Learning the model from scans (blsm.learn): each step parses its own arguments.
+    for name, text in PASSTHROUGH.items():
+        sub.add_parser(name, help=text, add_help=False).set_defaults(func=None)
     return p
+
+
+# ``blsm NAME ...`` runs ``main(argv)`` of the module: (module, help line).
+PASSTHROUGH_MODULES = {
+    "build-anny": "blsm.build_anny",
+    "scans": "blsm.learn.population",
+    "register": "blsm.learn.register",
+    "learn": "blsm.learn.train",
+    "train": "blsm.learn.pipeline",
+    "evaluate": "blsm.learn.evaluate",
+}
+PASSTHROUGH = {
+    "scans": "make a scan population from Anny (the CAESAR / D-FAUST stand-in)",
+    "register": "register the template to scans (landmark fit, then free-form; Eqs. 5.13-5.25)",
+    "learn": "learn bone basis, correctives, shape and weights from registrations (Eqs. 5.26-5.31)",
+    "train": "the whole run: population, registration, learning, evaluation (one config)",
+    "evaluate": "held-out errors of BLSM-linear and SMPL-reimpl against the number of coefficients",
+}
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
+    if argv and argv[0] in PASSTHROUGH_MODULES:
+        import importlib
+
+        try:
+            return importlib.import_module(PASSTHROUGH_MODULES[argv[0]]).main(argv[1:])
+        except ValueError as exc:
+            print(f"blsm {argv[0]}: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+            return 2
     args = parser.parse_args(argv)
     try:
-        if args.cmd == "build-anny":
-            from blsm import build_anny
-
-            return build_anny.main(argv[1:])
         return args.func(args)
     except ValueError as exc:
         print(f"blsm: error: {exc}", file=sys.stderr)

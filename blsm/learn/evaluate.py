@@ -1,0 +1,559 @@
+"""Held-out evaluation of BLSM-linear against SMPL-reimpl (thesis Sec. 5.5.2).
+
+- Shape generalisation (Fig. 5.6, Table 5.2): every held-out registration is fitted with the staged
+  fit (:mod:`blsm.learn.fit`) for k free shape coefficients, k in a list; reported are the mean
+  absolute vertex error (MABS, the mean Euclidean per-vertex distance) in mm, its standard
+  deviation over all vertices of all registrations, and the area under the cumulative per-vertex
+  error curve from 0 to ``auc_max`` mm (normalised to [0, 1]; 1 = every vertex exact).
+- Pose generalisation (Fig. 5.7 right): the shape is fitted on one frame of each held-out subject
+  (its first registration, the rest-pose one in a population folder), then only pose, global
+  orientation and translation on its other frames, shape coefficients held fixed.
+- Registration error: registered vertices against the ground-truth surface points of synthetic
+  scans (``gt_points`` of the scan file), where they can be found.
+
+Registrations are read from ``blsm-registration`` files (``vertices`` (V, 3) and a ``meta`` JSON
+with the subject id, the pose id and the split); see :func:`load_registrations`.
+
+Writes a markdown section, a JSON file with every number, and PNG line plots (drawn with PIL: the
+project's environment has no matplotlib).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from blsm.io import atomic_write
+from blsm.learn.fit import BLSMFittable, FitConfig, Fittable, staged_fit
+
+DEFAULT_KS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
+AUC_MAX_MM = 20.0
+
+
+# --------------------------------------------------------------------------------------------
+# Registrations
+
+
+@dataclass
+class RegistrationSet:
+    """Registrations in the model topology with their labels.
+
+    Attributes:
+        vertices: (N, V, 3) registered meshes, metres, world frame.
+        subjects: (N,) subject ids.
+        pose_ids: (N,) pose / frame ids (as strings).
+        splits: (N,) "train" or "test".
+        names: (N,) file names.
+        gt_points: per registration the (V, 3) ground-truth surface points or None.
+    """
+
+    vertices: torch.Tensor
+    subjects: list[str]
+    pose_ids: list[str]
+    splits: list[str]
+    names: list[str]
+    gt_points: list[np.ndarray | None] = field(default_factory=list)
+
+    def select(self, idx: list[int]) -> RegistrationSet:
+        return RegistrationSet(
+            self.vertices[idx],
+            [self.subjects[i] for i in idx],
+            [self.pose_ids[i] for i in idx],
+            [self.splits[i] for i in idx],
+            [self.names[i] for i in idx],
+            [self.gt_points[i] for i in idx] if self.gt_points else [],
+        )
+
+    def split(self, name: str) -> RegistrationSet:
+        return self.select([i for i, s in enumerate(self.splits) if s == name])
+
+
+def _meta_get(meta: dict, *keys: str, default: str = "") -> str:
+    for k in keys:
+        if k in meta and meta[k] is not None:
+            return str(meta[k])
+    return default
+
+
+def _find_gt(meta: dict, reg_dir: Path, scans_dir: Path | None) -> np.ndarray | None:
+    candidates = []
+    for key in ("scan_path", "scan"):
+        if isinstance(meta.get(key), str):
+            p = Path(meta[key])
+            candidates += [p, reg_dir / p, reg_dir.parent / p]
+            if scans_dir is not None:
+                candidates += [scans_dir / p, scans_dir / "scans" / p.name]
+    scan_id = _meta_get(meta, "scan_id", "scan id", "scan", "id")  # register.py writes "scan"
+    if scans_dir is not None and scan_id:
+        candidates += [scans_dir / "scans" / f"{scan_id}.npz", scans_dir / f"{scan_id}.npz"]
+    for p in candidates:
+        if p.suffix == ".npz" and p.is_file():
+            with np.load(p, allow_pickle=False) as z:
+                if "gt_points" in z.files:
+                    return np.asarray(z["gt_points"], dtype=np.float32)
+    return None
+
+
+def load_registrations(
+    folder: str | Path, num_vertices: int, scans_dir: str | Path | None = None
+) -> RegistrationSet:
+    """Read every ``*.npz`` registration in ``folder`` (recursively), sorted by subject and pose.
+
+    Args:
+        folder: a folder of ``blsm-registration`` files (``vertices`` (V, 3), ``meta`` JSON with
+            ``subject``, ``pose_id``/``pose``, ``split``; ``gt_points`` or a findable scan optional).
+        num_vertices: V of the model; files with another vertex count are an error.
+        scans_dir: population folder or scan folder where ground-truth scans can be looked up.
+
+    Returns:
+        :class:`RegistrationSet` (vertices float32).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: not a folder of registrations")
+    files = sorted(p for p in folder.rglob("*.npz") if not p.name.startswith("."))
+    if not files:
+        raise ValueError(f"{folder}: no .npz registrations found")
+    rows = []
+    for path in files:
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: cannot read registration ({exc})") from exc
+        if "vertices" not in arrays:
+            raise ValueError(f"{path}: missing array 'vertices'")
+        verts = np.asarray(arrays["vertices"], dtype=np.float32)
+        if verts.shape != (num_vertices, 3) or not np.isfinite(verts).all():
+            raise ValueError(f"{path}: vertices must be finite ({num_vertices}, 3), got {verts.shape}")
+        meta_raw = arrays.get("meta", arrays.get("meta_json", np.array("{}")))
+        try:
+            meta = json.loads(str(meta_raw))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: meta is not JSON ({exc})") from exc
+        split = _meta_get(meta, "split", default="test")
+        if split not in ("train", "test"):
+            raise ValueError(f"{path}: split must be 'train' or 'test', got {split!r}")
+        gt = arrays.get("gt_points")
+        if gt is None:
+            gt = _find_gt(meta, folder, None if scans_dir is None else Path(scans_dir))
+        rows.append(
+            (
+                _meta_get(meta, "subject", "subject_id", default=path.stem),
+                _meta_get(meta, "pose_id", "pose id", "pose", "frame", default=path.stem),
+                split,
+                path.name,
+                verts,
+                None if gt is None or np.shape(gt) != (num_vertices, 3) else np.asarray(gt, np.float32),
+            )
+        )
+    rows.sort(key=lambda r: (r[0], _natural(r[1]), r[3]))
+    return RegistrationSet(
+        torch.from_numpy(np.stack([r[4] for r in rows])),
+        [r[0] for r in rows],
+        [r[1] for r in rows],
+        [r[2] for r in rows],
+        [r[3] for r in rows],
+        [r[5] for r in rows],
+    )
+
+
+def _natural(s: str) -> tuple:
+    return (0, int(s), "") if s.isdigit() else (1, 0, s)
+
+
+# --------------------------------------------------------------------------------------------
+# Metrics
+
+
+@dataclass
+class ErrorStats:
+    """Per-vertex error summary (mm).
+
+    Attributes:
+        mean: mean absolute vertex error (MABS).
+        sd: standard deviation of the per-vertex errors.
+        auc: area under the cumulative error distribution on [0, auc_max] mm, normalised to [0, 1].
+        median, p95: percentiles.
+        count: number of registrations.
+    """
+
+    mean: float
+    sd: float
+    auc: float
+    median: float
+    p95: float
+    count: int
+
+
+def error_stats(errors_m: torch.Tensor, auc_max_mm: float = AUC_MAX_MM) -> ErrorStats:
+    """Summarise (N, V) per-vertex errors in metres."""
+    e = errors_m.detach().double().flatten() * 1000.0
+    if e.numel() == 0:
+        raise ValueError("no errors to summarise")
+    return ErrorStats(
+        mean=float(e.mean()),
+        sd=float(e.std()) if e.numel() > 1 else 0.0,
+        auc=cumulative_auc(e, auc_max_mm),
+        median=float(e.median()),
+        p95=float(torch.quantile(e[: 10_000_000], 0.95)),
+        count=int(errors_m.shape[0]),
+    )
+
+
+def cumulative_auc(errors_mm: torch.Tensor, max_mm: float = AUC_MAX_MM) -> float:
+    """Area under ``F(t) = P(error <= t)`` for t in [0, max_mm], divided by max_mm.
+
+    Equals ``mean(max(0, 1 - min(e, max) / max))``; 1 means every error is 0.
+    """
+    e = errors_mm.double().clamp(max=max_mm)
+    return float((1.0 - e / max_mm).mean())
+
+
+# --------------------------------------------------------------------------------------------
+# Experiments
+
+
+@dataclass
+class EvalConfig:
+    """Settings of :func:`evaluate`.
+
+    Attributes:
+        ks: numbers of shape coefficients (Fig. 5.6's x axis); values above a model's total are
+            skipped for that model.
+        fit: staged-fit settings.
+        batch: registrations fitted together.
+        auc_max_mm: upper end of the cumulative error curve.
+        pose_generalisation: whether to run the Fig. 5.7 (right) experiment.
+    """
+
+    ks: tuple[int, ...] = DEFAULT_KS
+    fit: FitConfig = field(default_factory=lambda: FitConfig(lm_iterations=25))
+    batch: int = 16
+    auc_max_mm: float = AUC_MAX_MM
+    pose_generalisation: bool = True
+
+
+def fit_errors(
+    fittable: Fittable,
+    targets: torch.Tensor,
+    num_coeffs: int,
+    fit: FitConfig,
+    batch: int,
+    fixed: dict[str, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+    """Staged fit in batches; returns (N, V) errors in metres and the fitted coefficient groups."""
+    errs, coeffs = [], {k: [] for k in fittable.coeff_sizes}
+    for i in range(0, targets.shape[0], batch):
+        sl = slice(i, i + batch)
+        fx = None if fixed is None else {k: v[sl] for k, v in fixed.items()}
+        res = staged_fit(fittable, targets[sl], num_coeffs=num_coeffs, config=fit, fixed_coeffs=fx)
+        errs.append(res.errors)
+        for k in coeffs:
+            coeffs[k].append(res.params[k])
+    return torch.cat(errs), {k: torch.cat(v) for k, v in coeffs.items()}
+
+
+def shape_curve(
+    fittable: Fittable, regs: RegistrationSet, cfg: EvalConfig
+) -> dict[int, ErrorStats]:
+    """Fig. 5.6 / Table 5.2: error statistics per number of coefficients k."""
+    dtype = fittable.skeleton.template.dtype
+    targets = regs.vertices.to(dtype)
+    out = {}
+    for k in cfg.ks:
+        if k > fittable.num_coeffs_max:
+            continue
+        errors, _ = fit_errors(fittable, targets, k, cfg.fit, cfg.batch)
+        out[k] = error_stats(errors, cfg.auc_max_mm)
+    return out
+
+
+def pose_curve(
+    fittable: Fittable, regs: RegistrationSet, cfg: EvalConfig
+) -> dict[int, ErrorStats]:
+    """Fig. 5.7 right: shape from each subject's first frame, then pose only on the other frames."""
+    dtype = fittable.skeleton.template.dtype
+    first: dict[str, int] = {}
+    for i, s in enumerate(regs.subjects):
+        first.setdefault(s, i)
+    others = [i for i, s in enumerate(regs.subjects) if first[s] != i]
+    if not others:
+        return {}
+    subj = sorted(first)
+    shape_idx = [first[s] for s in subj]
+    out = {}
+    for k in cfg.ks:
+        if k > fittable.num_coeffs_max:
+            continue
+        _, coeffs = fit_errors(fittable, regs.vertices[shape_idx].to(dtype), k, cfg.fit, cfg.batch)
+        row = torch.tensor([subj.index(regs.subjects[i]) for i in others])
+        fixed = {g: c[row] for g, c in coeffs.items()}
+        errors, _ = fit_errors(fittable, regs.vertices[others].to(dtype), k, cfg.fit, cfg.batch, fixed)
+        out[k] = error_stats(errors, cfg.auc_max_mm)
+    return out
+
+
+def registration_errors(regs: RegistrationSet, auc_max_mm: float = AUC_MAX_MM) -> ErrorStats | None:
+    """Registered vertices against ground-truth correspondences, where known."""
+    idx = [i for i, g in enumerate(regs.gt_points) if g is not None]
+    if not idx:
+        return None
+    gt = torch.from_numpy(np.stack([regs.gt_points[i] for i in idx]))
+    return error_stats((regs.vertices[idx] - gt).norm(dim=-1), auc_max_mm)
+
+
+@dataclass
+class EvalReport:
+    """All numbers of one evaluation (mm); ``shape[model][k]`` and ``pose[model][k]``."""
+
+    shape: dict[str, dict[int, ErrorStats]]
+    pose: dict[str, dict[int, ErrorStats]]
+    registration: ErrorStats | None
+    info: dict
+
+
+def evaluate(
+    models: dict[str, Fittable], regs: RegistrationSet, cfg: EvalConfig | None = None
+) -> EvalReport:
+    """Run the shape (and pose) generalisation experiments on ``regs`` for every model."""
+    cfg = cfg or EvalConfig()
+    if regs.vertices.shape[0] == 0:
+        raise ValueError("no registrations to evaluate")
+    t0 = time.time()
+    shape = {name: shape_curve(f, regs, cfg) for name, f in models.items()}
+    pose = {name: pose_curve(f, regs, cfg) for name, f in models.items()} if cfg.pose_generalisation else {}
+    info = {
+        "registrations": int(regs.vertices.shape[0]),
+        "subjects": len(set(regs.subjects)),
+        "fit": asdict(cfg.fit),
+        "seconds": round(time.time() - t0, 1),
+        "max_coeffs": {name: f.num_coeffs_max for name, f in models.items()},
+    }
+    return EvalReport(shape, pose, registration_errors(regs, cfg.auc_max_mm), info)
+
+
+# --------------------------------------------------------------------------------------------
+# Output: markdown, JSON, PNG
+
+
+def _table(curves: dict[str, dict[int, ErrorStats]], ks: list[int]) -> list[str]:
+    names = list(curves)
+    head = "| k | " + " | ".join(f"{n} error (mm) | {n} AUC" for n in names) + " |"
+    rule = "|---|" + "---|---|" * len(names)
+    lines = [head, rule]
+    for k in ks:
+        cells = []
+        for n in names:
+            s = curves[n].get(k)
+            cells += ["-", "-"] if s is None else [f"{s.mean:.2f} ± {s.sd:.2f}", f"{s.auc:.3f}"]
+        lines.append(f"| {k} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def write_report(report: EvalReport, out: str | Path, title: str = "BLSM evaluation") -> list[Path]:
+    """Write ``out`` (markdown), ``<stem>.json`` and ``<stem>_shape.png`` / ``<stem>_pose.png``."""
+    out = Path(out)
+    stem = out.with_suffix("")
+    written = []
+    ks = sorted({k for c in report.shape.values() for k in c})
+    lines = [f"## {title}", ""]
+    lines.append(
+        f"{report.info['registrations']} held-out registrations of {report.info['subjects']} subjects; "
+        f"staged fit (Sec. 5.5.2): Adam lr {report.info['fit']['lr']}, "
+        f"x{report.info['fit']['plateau_factor']} "
+        f"on plateau, {tuple(report.info['fit']['iterations'])} steps per stage, "
+        f"then {report.info['fit']['lm_iterations']} Levenberg-Marquardt steps (not in the thesis). "
+        f"Errors are per-vertex Euclidean distances (mean ± sd over all vertices); AUC is the area under "
+        f"the cumulative per-vertex error distribution on [0, {AUC_MAX_MM:g}] mm, normalised."
+    )
+    lines += ["", "### Shape generalisation (Fig. 5.6, Table 5.2)", ""]
+    lines += _table(report.shape, ks)
+    plot = stem.parent / f"{stem.name}_shape.png"
+    line_plot(
+        {n: ([float(k) for k in c], [c[k].mean for k in c]) for n, c in report.shape.items()},
+        plot, "Shape generalisation", "number of shape coefficients", "mean abs. vertex error (mm)",
+    )
+    written.append(plot)
+    lines += ["", f"![shape generalisation]({plot.name})"]
+    if any(report.pose.values()):
+        pks = sorted({k for c in report.pose.values() for k in c})
+        lines += ["", "### Pose generalisation (Fig. 5.7 right)", "",
+                  "Shape fitted on each subject's first registration, pose only on the others.", ""]
+        lines += _table(report.pose, pks)
+        plot = stem.parent / f"{stem.name}_pose.png"
+        line_plot(
+            {n: ([float(k) for k in c], [c[k].mean for k in c]) for n, c in report.pose.items()},
+            plot, "Pose generalisation", "number of shape coefficients", "mean abs. vertex error (mm)",
+        )
+        written.append(plot)
+        lines += ["", f"![pose generalisation]({plot.name})"]
+    if report.registration is not None:
+        r = report.registration
+        lines += ["", "### Registration error against ground-truth correspondences", "",
+                  f"{r.count} registrations: {r.mean:.2f} ± {r.sd:.2f} mm (median {r.median:.2f}, "
+                  f"95th percentile {r.p95:.2f}), AUC {r.auc:.3f}."]
+    lines += ["", _verdict(report), ""]
+    with atomic_write(out, "w") as fh:
+        fh.write("\n".join(lines))
+    written.insert(0, out)
+    js = stem.parent / f"{stem.name}.json"
+    payload = {
+        "shape": {n: {str(k): asdict(s) for k, s in c.items()} for n, c in report.shape.items()},
+        "pose": {n: {str(k): asdict(s) for k, s in c.items()} for n, c in report.pose.items()},
+        "registration": None if report.registration is None else asdict(report.registration),
+        "info": report.info,
+    }
+    with atomic_write(js, "w") as fh:
+        json.dump(payload, fh, indent=1)
+    written.append(js)
+    return written
+
+
+def _verdict(report: EvalReport) -> str:
+    if "BLSM-linear" not in report.shape or "SMPL-reimpl" not in report.shape:
+        return ""
+    a, b = report.shape["BLSM-linear"], report.shape["SMPL-reimpl"]
+    common = [k for k in a if k in b]
+    worse = [k for k in common if a[k].mean >= b[k].mean]
+    if not worse:
+        return f"BLSM-linear has the lower shape error for every k in {common}."
+    return f"BLSM-linear is **not** better than SMPL-reimpl for k in {worse} (shape generalisation)."
+
+
+# A small line plotter on PIL (axes, ticks, legend).
+_COLOURS = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14)]
+
+
+def _nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
+    if hi <= lo:
+        hi = lo + 1.0
+    raw = (hi - lo) / n
+    mag = 10 ** math.floor(math.log10(raw))
+    step = min((m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw), default=10 * mag)
+    start = math.floor(lo / step) * step
+    ticks = [round(start, 10)]
+    while ticks[-1] < hi - 1e-9 * step:  # the last tick is at or above hi, so every point fits
+        ticks.append(round(ticks[-1] + step, 10))
+    return ticks
+
+
+def line_plot(
+    series: dict[str, tuple[list[float], list[float]]],
+    path: str | Path,
+    title: str,
+    xlabel: str,
+    ylabel: str,
+    size: tuple[int, int] = (720, 480),
+) -> Path:
+    """Draw lines with markers, axes, ticks, labels and a legend to a PNG with PIL."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    w, h = size
+    left, right, top, bottom = 80, 20, 40, 60
+    img = Image.new("RGB", size, "white")
+    d = ImageDraw.Draw(img)
+    font = ImageFont.load_default()
+    xs = [x for xv, _ in series.values() for x in xv]
+    ys = [y for _, yv in series.values() for y in yv]
+    if not xs:
+        xs, ys = [0.0, 1.0], [0.0, 1.0]
+    xt = _nice_ticks(min(xs), max(xs))
+    yt = _nice_ticks(0.0, max(ys) * 1.05)
+    x0, x1, y0, y1 = xt[0], xt[-1], yt[0], yt[-1]
+
+    def px(x: float, y: float) -> tuple[float, float]:
+        return (
+            left + (x - x0) / (x1 - x0) * (w - left - right),
+            h - bottom - (y - y0) / (y1 - y0) * (h - top - bottom),
+        )
+
+    d.rectangle([left, top, w - right, h - bottom], outline="black")
+    for t in xt:
+        x, _ = px(t, y0)
+        d.line([x, h - bottom, x, h - bottom + 5], fill="black")
+        d.line([x, top, x, h - bottom], fill=(230, 230, 230))
+        label = f"{t:g}"
+        d.text((x - 3 * len(label), h - bottom + 8), label, fill="black", font=font)
+    for t in yt:
+        _, y = px(x0, t)
+        d.line([left - 5, y, left, y], fill="black")
+        d.line([left, y, w - right, y], fill=(230, 230, 230))
+        label = f"{t:g}"
+        d.text((left - 8 - 6 * len(label), y - 6), label, fill="black", font=font)
+    d.rectangle([left, top, w - right, h - bottom], outline="black")
+    d.text((w // 2 - 3 * len(title), 12), title, fill="black", font=font)
+    d.text((w // 2 - 3 * len(xlabel), h - 25), xlabel, fill="black", font=font)
+    ylab = Image.new("RGB", (6 * len(ylabel) + 4, 14), "white")
+    ImageDraw.Draw(ylab).text((2, 0), ylabel, fill="black", font=font)
+    ylab = ylab.rotate(90, expand=True)
+    img.paste(ylab, (8, top + (h - top - bottom - ylab.size[1]) // 2))
+    for i, (name, (xv, yv)) in enumerate(series.items()):
+        c = _COLOURS[i % len(_COLOURS)]
+        pts = [px(x, y) for x, y in zip(xv, yv)]
+        if len(pts) > 1:
+            d.line(pts, fill=c, width=2)
+        for x, y in pts:
+            d.ellipse([x - 3, y - 3, x + 3, y + 3], fill=c)
+        ly = top + 10 + 16 * i
+        d.line([w - right - 150, ly + 6, w - right - 125, ly + 6], fill=c, width=2)
+        d.text((w - right - 118, ly), name, fill="black", font=font)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path) as fh:
+        img.save(fh, format="PNG")
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# Command line
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``blsm evaluate``: BLSM-linear vs SMPL-reimpl on held-out registrations."""
+    import blsm
+    from blsm.learn.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
+
+    ap = argparse.ArgumentParser(prog="blsm evaluate", description=__doc__.split("\n")[0])
+    ap.add_argument("--model", default=None, help="BLSM model .npz (default: the packaged one)")
+    ap.add_argument("--baseline", default=None, help="SMPL-reimpl .npz (blsm.learn.smpl_reimpl)")
+    ap.add_argument("--registrations", required=True, help="folder of blsm-registration .npz files")
+    ap.add_argument("--scans", default=None, help="population / scan folder for ground truth")
+    ap.add_argument("--split", default="test", choices=("train", "test", "all"))
+    ap.add_argument("--out", default="docs/blsm_evaluation.md", help="markdown file to write")
+    ap.add_argument("--ks", default=",".join(map(str, DEFAULT_KS)), help="comma-separated k values")
+    ap.add_argument("--iterations", default="100,100,100,300", help="Adam steps of the four stages")
+    ap.add_argument("--lm-iterations", type=int, default=25, help="Levenberg-Marquardt polish steps")
+    ap.add_argument("--batch", type=int, default=16)
+    ap.add_argument("--max-registrations", type=int, default=0, help="0 = all")
+    ap.add_argument("--no-pose", action="store_true", help="skip pose generalisation")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    try:
+        ks = tuple(int(k) for k in args.ks.split(","))
+        iters = tuple(int(i) for i in args.iterations.split(","))
+        fitcfg = FitConfig(iterations=iters, lm_iterations=args.lm_iterations)  # type: ignore[arg-type]
+        model = blsm.load(args.model)
+        regs = load_registrations(args.registrations, model.num_vertices, args.scans)
+        if args.split != "all":
+            regs = regs.split(args.split)
+        if args.max_registrations > 0:
+            regs = regs.select(list(range(min(args.max_registrations, regs.vertices.shape[0]))))
+        models: dict[str, Fittable] = {"BLSM-linear": BLSMFittable(model)}
+        if args.baseline:
+            models["SMPL-reimpl"] = SMPLReimplFittable(load_smpl_reimpl(args.baseline, model))
+        report = evaluate(models, regs, EvalConfig(ks=ks, fit=fitcfg, batch=args.batch,
+                                                   pose_generalisation=not args.no_pose))
+        for p in write_report(report, args.out):
+            print(p)
+    except ValueError as exc:
+        print(f"blsm evaluate: error: {exc}")
+        return 2
+    return 0

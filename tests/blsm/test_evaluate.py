@@ -1,0 +1,135 @@
+"""Tests of blsm/learn/evaluate.py: held-out errors, tables and plots (thesis Sec. 5.5.2)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from blsm.io import atomic_write
+from blsm.learn.evaluate import (
+    EvalConfig,
+    cumulative_auc,
+    error_stats,
+    evaluate,
+    line_plot,
+    load_registrations,
+    main,
+    write_report,
+)
+from blsm.learn.fit import BLSMFittable, FitConfig
+from blsm.learn.smpl_reimpl import SMPLReimpl, SMPLReimplFittable, ring_regressor
+
+FIT = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=3)
+
+
+def _write_regs(model, folder, gen, subjects=3, poses=2):
+    for s in range(subjects):
+        cb = torch.randn(1, model.num_bone_coeffs, generator=gen)
+        for p in range(poses):
+            angles = torch.zeros(1, model.num_dofs)
+            if p:
+                angles[0, model.dof_names.index("knee_l.flex")] = 0.4 * p
+                angles[0, model.dof_names.index("elbow_r.flex")] = 0.3 * p
+            with torch.no_grad():
+                v = model(angles=angles, bone=cb).vertices[0].numpy()
+            meta = {"subject": f"s{s}", "pose_id": p, "split": "test" if s else "train"}
+            with atomic_write(folder / f"s{s}_p{p}.npz") as fh:
+                np.savez(fh, vertices=v, meta=np.array(json.dumps(meta)), gt_points=v + 0.001)
+
+
+@pytest.fixture(scope="module")
+def baseline(model):
+    reg, _ = ring_regressor(model)
+    return SMPLReimpl(model, model.template, model.shape_decoder.basis[:4], reg, {"num_coeffs": 4})
+
+
+def test_cumulative_auc_matches_numeric_integral(gen):
+    e = torch.rand(1000, generator=gen, dtype=torch.float64) * 30.0
+    ts = torch.linspace(0, 20, 20001, dtype=torch.float64)
+    cdf = (e[None] <= ts[:, None]).double().mean(1)
+    assert cumulative_auc(e, 20.0) == pytest.approx(float(torch.trapezoid(cdf, ts)) / 20.0, abs=1e-3)
+    assert cumulative_auc(torch.zeros(5)) == 1.0
+    assert cumulative_auc(torch.full((5,), 25.0)) == 0.0
+
+
+def test_error_stats_in_mm():
+    s = error_stats(torch.tensor([[0.001, 0.003]]))
+    assert s.mean == pytest.approx(2.0) and s.count == 1 and s.sd == pytest.approx(2**0.5)
+    with pytest.raises(ValueError):
+        error_stats(torch.zeros(0, 3))
+
+
+def test_evaluate_writes_table_plot_and_json(model, baseline, tmp_path, gen):
+    _write_regs(model, tmp_path / "regs", gen)
+    regs = load_registrations(tmp_path / "regs", model.num_vertices)
+    assert regs.subjects == ["s0", "s0", "s1", "s1", "s2", "s2"] and regs.pose_ids[:2] == ["0", "1"]
+    test = regs.split("test")
+    assert len(test.names) == 4
+    models = {"BLSM-linear": BLSMFittable(model), "SMPL-reimpl": SMPLReimplFittable(baseline)}
+    report = evaluate(models, test, EvalConfig(ks=(1, 3), fit=FIT, batch=4))
+    assert set(report.shape["BLSM-linear"]) == {1, 3} and set(report.pose["SMPL-reimpl"]) == {1, 3}
+    # bone-only bodies: BLSM with 3 bone coefficients is far better than with 1
+    assert report.shape["BLSM-linear"][3].mean < report.shape["BLSM-linear"][1].mean
+    assert report.registration is not None
+    assert report.registration.mean == pytest.approx(3**0.5, rel=1e-3)  # gt offset by 1 mm per axis
+    files = write_report(report, tmp_path / "docs" / "eval.md")
+    names = sorted(p.name for p in files)
+    assert names == ["eval.json", "eval.md", "eval_pose.png", "eval_shape.png"]
+    text = (tmp_path / "docs" / "eval.md").read_text()
+    s3 = report.shape["BLSM-linear"][3]
+    assert f"{s3.mean:.2f} ± {s3.sd:.2f}" in text and f"{s3.auc:.3f}" in text
+    assert "eval_shape.png" in text and "Pose generalisation" in text
+    data = json.loads((tmp_path / "docs" / "eval.json").read_text())
+    assert data["shape"]["SMPL-reimpl"]["1"]["mean"] == pytest.approx(report.shape["SMPL-reimpl"][1].mean)
+    from PIL import Image
+
+    img = np.asarray(Image.open(tmp_path / "docs" / "eval_shape.png"))
+    assert img.shape == (480, 720, 3) and (img != 255).any()
+
+
+def test_main_end_to_end(model, baseline, tmp_path, gen):
+    _write_regs(model, tmp_path / "regs", gen, subjects=2)
+    baseline.save(tmp_path / "smpl.npz")
+    out = tmp_path / "docs" / "blsm_evaluation.md"
+    rc = main([
+        "--registrations", str(tmp_path / "regs"), "--baseline", str(tmp_path / "smpl.npz"),
+        "--out", str(out), "--ks", "2", "--iterations", "10,10,10,20", "--lm-iterations", "2", "--no-pose",
+    ])
+    assert rc == 0 and out.is_file() and (tmp_path / "docs" / "blsm_evaluation_shape.png").is_file()
+    assert "| 2 |" in out.read_text()
+    assert main(["--registrations", str(tmp_path / "nope"), "--out", str(out)]) == 2
+
+
+def test_line_plot_draws_series(tmp_path):
+    from PIL import Image
+
+    series = {"a": ([1, 2, 4], [3.0, 2.0, 1.0]), "b": ([1, 2, 4], [4.0, 3.5, 3.0])}
+    p = line_plot(series, tmp_path / "p.png", "t", "x", "y")
+    img = np.asarray(Image.open(p)).astype(int)
+    blue = (np.abs(img - np.array([31, 119, 180])).sum(-1) < 10).sum()
+    red = (np.abs(img - np.array([214, 39, 40])).sum(-1) < 10).sum()
+    assert blue > 100 and red > 100
+
+
+def test_bad_registration_files(model, tmp_path):
+    with pytest.raises(ValueError, match="not a folder"):
+        load_registrations(tmp_path / "missing", model.num_vertices)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no .npz"):
+        load_registrations(tmp_path / "empty", model.num_vertices)
+    (tmp_path / "bad").mkdir()
+    np.savez(tmp_path / "bad" / "r.npz", vertices=np.zeros((5, 3), np.float32))
+    with pytest.raises(ValueError, match="r.npz"):
+        load_registrations(tmp_path / "bad", model.num_vertices)
+    (tmp_path / "bad2").mkdir()
+    np.savez(tmp_path / "bad2" / "q.npz", faces=np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="q.npz: missing array 'vertices'"):
+        load_registrations(tmp_path / "bad2", model.num_vertices)
+    (tmp_path / "bad3").mkdir()
+    np.savez(tmp_path / "bad3" / "s.npz", vertices=model.template.numpy(),
+             meta=np.array(json.dumps({"split": "validation"})))
+    with pytest.raises(ValueError, match="s.npz: split"):
+        load_registrations(tmp_path / "bad3", model.num_vertices)
