@@ -260,6 +260,7 @@ PASSTHROUGH_MODULES = {
     "learn": "blsm.learn.train",
     "train": "blsm.learn.pipeline",
     "evaluate": "blsm.learn.evaluate",
+    "train-smpl": "blsm.learn.smpl_reimpl",
 }
 PASSTHROUGH = {
     "scans": "make a scan population from Anny (the CAESAR / D-FAUST stand-in)",
@@ -267,6 +268,7 @@ PASSTHROUGH = {
     "learn": "learn bone basis, correctives, shape and weights from registrations (Eqs. 5.26-5.31)",
     "train": "the whole run: population, registration, learning, evaluation (one config)",
     "evaluate": "held-out errors of BLSM-linear and SMPL-reimpl against the number of coefficients",
+    "train-smpl": "train the SMPL-reimpl baseline on registrations (Sec. 5.5.1)",
 }
 
 

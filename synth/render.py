@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from blsm.mesh import vertex_normals
 from blsm.render import Camera, _mitsuba, _resolve_variant, _sensor_params, _to_world_matrix
 
 
@@ -58,17 +59,6 @@ class RenderMesh:
     @property
     def key(self) -> tuple[int, int, int]:
         return (len(self.split_vertex), len(self.faces), hash(self.split_faces.tobytes()))
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) area-weighted unit vertex normals of the (unsplit) mesh, so UV seams shade smoothly."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    vn = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(vn, faces[:, k], fn)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
-    return (vn / np.maximum(norm, 1e-12)).astype(np.float32)
 
 
 @dataclass
@@ -242,7 +232,7 @@ class PeopleRenderer:
             return dr.opaque(mi.Float, float(x))
 
         for i, (m, v, tex) in enumerate(zip(self.meshes, vertices, textures)):
-            normals = vertex_normals(v, m.faces)
+            normals = vertex_normals(np.asarray(v, np.float32), m.faces)
             p[f"person_{i}.vertex_positions"] = mi.Float(np.ascontiguousarray(v[m.split_vertex]).reshape(-1))
             p[f"person_{i}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
             p[f"person_{i}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))

@@ -132,7 +132,7 @@ def paint_weights(
     if scan_faces is None or reg_faces is None:
         _, nearest = tree.query(scan_vertices)
     else:
-        from synth.render import vertex_normals
+        from blsm.mesh import vertex_normals
 
         kk = min(k, len(reg_vertices))
         _, cand = tree.query(scan_vertices, k=kk)  # (V, k), nearest first

@@ -44,6 +44,7 @@ import torch
 from blsm.build_anny import ANNY_TO_WORLD, _interp, anny_bone_groups, barycentric_embedding
 from blsm.io import atomic_write
 from blsm.learn.posing import pose as blsm_pose
+from blsm.mesh import vertex_normals
 from blsm.learn.scans import Scan, landmark_names, landmark_points, save_scan
 
 POPULATION_FORMAT = "blsm-population"
@@ -274,17 +275,6 @@ class Artefacts:
 
 
 NO_ARTEFACTS = Artefacts(0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0.0)
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(V, 3) unit area-weighted vertex normals of a triangle mesh (V, 3), (F, 3)."""
-    fn = np.cross(
-        vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]
-    )
-    vn = np.zeros_like(vertices)
-    for c in range(3):
-        np.add.at(vn, faces[:, c], fn)
-    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
 
 
 def hole_vertices(

@@ -150,33 +150,9 @@ class RegisterConfig:
 
 def load_config(path: str | Path) -> RegisterConfig:
     """Read a :class:`RegisterConfig` from YAML; unknown keys and wrong types are one-line errors."""
-    path = Path(path)
-    data = read_yaml(path, "registration config")
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: expected a mapping of RegisterConfig fields")
-    hints = typing.get_type_hints(RegisterConfig)
-    kwargs: dict[str, Any] = {}
-    for k, v in data.items():
-        if k not in hints:
-            raise ValueError(f"{path}: {k}: unknown key (known: {', '.join(sorted(hints))})")
-        tp = hints[k]
-        if tp is int and (isinstance(v, bool) or not isinstance(v, int)):
-            raise ValueError(f"{path}: {k}: expected an integer, got {v!r}")
-        if tp is bool and not isinstance(v, bool):
-            raise ValueError(f"{path}: {k}: expected true or false, got {v!r}")
-        if tp is str and not isinstance(v, str):
-            raise ValueError(f"{path}: {k}: expected a string, got {v!r}")
-        if tp is float:
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise ValueError(f"{path}: {k}: expected a number, got {v!r}")
-            v = float(v)
-        kwargs[k] = v
-    try:
-        return RegisterConfig(**kwargs)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+    from blsm.config import config_from_dict
+
+    return config_from_dict(RegisterConfig, read_yaml(path, "registration config"), str(path))
 
 
 @dataclass

@@ -186,7 +186,7 @@ class TrainConfig:
     weights: WeightsConfig = field(default_factory=WeightsConfig)
 
 
-OTHER_SECTIONS = ("population", "registration", "evaluation")
+OTHER_SECTIONS = ("run", "population", "registration", "evaluation")
 """Top-level sections of a run config that :func:`load_train_config` leaves to other readers."""
 
 
