@@ -215,6 +215,10 @@ def registration_step(cfg: PipelineConfig, work: Path, jobs: list[tuple[Path, di
     _log(f"registration: {len(jobs) - len(todo)} of {len(jobs)} scans already registered")
     if not todo:
         return out
+    from blsm.learn.scans import load_scan
+
+    for path, _, _ in todo:  # every scan is checked before any work: a bad one is a one-line error
+        load_scan(path, require_landmarks=True)
     b = max(1, cfg.run.batch)
     chunks = [todo[i : i + b] for i in range(0, len(todo), b)]
     workers = cfg.run.workers or (os.cpu_count() or 1)
@@ -245,7 +249,8 @@ def registration_step(cfg: PipelineConfig, work: Path, jobs: list[tuple[Path, di
 
 
 def learning_step(
-    cfg: PipelineConfig, reg_folder: Path, out_model: Path, model_path: str | None, source: str
+    cfg: PipelineConfig, reg_folder: Path, out_model: Path, model_path: str | None, source: str,
+    population: Path | None = None,
 ) -> dict:
     """Learn the model from the registrations (train split for the model; test kept for the report)."""
     import blsm
@@ -256,27 +261,59 @@ def learning_step(
     data, report = learn_model(blsm.load(model_path), regs, cfg.train)
     data.meta["build_command"] = f"blsm train {source} --out {out_model}"
     io.save_model(data, out_model)
-    report["registration"] = registration_summary(regs)
+    model = blsm.load(out_model)
+    report["registration"] = registration_summary(
+        regs, population, model.faces.numpy(), model.part_names, model.vertex_parts.numpy()
+    )
     report["learning_seconds"] = round(time.time() - t0, 1)
     return report
 
 
-def registration_summary(regs: list[Any]) -> dict:
-    """Mean / max registration error against ground truth (mm) by split, where scans had it."""
+def registration_summary(regs: list[Any], population: Path | None = None, faces: Any = None,
+                         part_names: list[str] | None = None, vertex_parts: Any = None) -> dict:
+    """Registration error against ground-truth correspondence (mm), by split, where scans had it.
+
+    With the population folder and the model's ``faces``, each error vector is also split into its
+    component along the true surface normal (off the surface) and the rest (sliding along the
+    surface), and averaged per body part (``vertex_parts``, ``part_names``).
+    """
     import numpy as np
+
+    from blsm.mesh import vertex_normals
 
     out: dict[str, Any] = {}
     for split in ("train", "test"):
-        rows = [r.meta for r in regs if (r.meta or {}).get("split", "train") == split and "error_mean_mm" in r.meta]
-        if rows:
-            means = np.array([m["error_mean_mm"] for m in rows])
-            out[split] = {
-                "scans": len(rows),
-                "error_mean_mm": float(means.mean()),
-                "error_mean_mm_worst_scan": float(means.max()),
-                "error_max_mm": float(max(m["error_max_mm"] for m in rows)),
-                "stage1_error_mean_mm": float(np.mean([m["stage1_error_mean_mm"] for m in rows])),
-            }
+        rows = [r for r in regs if (r.meta or {}).get("split", "train") == split and "error_mean_mm" in r.meta]
+        if not rows:
+            continue
+        means = np.array([r.meta["error_mean_mm"] for r in rows])
+        entry = {
+            "scans": len(rows),
+            "error_mean_mm": float(means.mean()),
+            "error_mean_mm_worst_scan": float(means.max()),
+            "error_max_mm": float(max(r.meta["error_max_mm"] for r in rows)),
+            "stage1_error_mean_mm": float(np.mean([r.meta["stage1_error_mean_mm"] for r in rows])),
+            "rest_scans_error_mean_mm": float(np.mean([r.meta["error_mean_mm"] for r in rows if r.meta.get("pose") == 0] or [np.nan])),
+            "posed_scans_error_mean_mm": float(np.mean([r.meta["error_mean_mm"] for r in rows if r.meta.get("pose") != 0] or [np.nan])),
+        }
+        if population is not None and faces is not None:
+            normal, tangent, parts = [], [], []
+            for r in rows:
+                scan = population / "scans" / f"{r.meta['scan']}.npz"
+                with np.load(scan, allow_pickle=False) as z:
+                    gt = np.asarray(z["gt_points"], np.float64)
+                d = np.asarray(r.vertices, np.float64) - gt
+                n = vertex_normals(gt, faces)
+                dn = (d * n).sum(1)
+                normal.append(np.abs(dn).mean())
+                tangent.append(np.linalg.norm(d - dn[:, None] * n, axis=1).mean())
+                e = np.linalg.norm(d, axis=1)
+                parts.append([e[vertex_parts == k].mean() for k in range(len(part_names or []))])
+            entry["normal_mean_mm"] = float(np.mean(normal) * 1000)
+            entry["tangential_mean_mm"] = float(np.mean(tangent) * 1000)
+            if part_names:
+                entry["by_part_mm"] = dict(zip(part_names, (np.mean(parts, 0) * 1000).round(2).tolist()))
+        out[split] = entry
     return out
 
 
@@ -356,7 +393,7 @@ def run(cfg: PipelineConfig, out_model: Path, model_path: str | None = None, sou
         round_cfg = dataclasses.replace(cfg, registration=reg_cfg)
         reg_folder = registration_step(round_cfg, work / f"round{r}", jobs, current)
         target = out_model if r == cfg.run.rounds else work / f"round{r}" / "model.npz"
-        rep = learning_step(cfg, reg_folder, target, current, source)
+        rep = learning_step(cfg, reg_folder, target, current, source, folder)
         rounds.append({"round": r, "registration": rep["registration"], "errors_mm": rep.get("errors_mm")})
         current, reg_cfg = str(target), cfg.registration
     report = rep

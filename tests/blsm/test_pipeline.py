@@ -97,3 +97,23 @@ def test_config_errors_are_one_line_naming_file_and_key(tmp_path, capsys):
         load_config(bad)
     load_config("configs/blsm/train_default.yaml")  # the shipped configs parse
     load_config(SMALL)
+
+
+def test_a_malformed_scan_stops_the_run_before_any_registration(tmp_path, capsys):
+    import numpy as np
+
+    from blsm.learn.population import make_population
+
+    pop = tmp_path / "pop"
+    make_population(pop, 3, seed=2, test_fraction=0.0)
+    bad = sorted((pop / "scans").glob("*.npz"))[-1]
+    with np.load(bad, allow_pickle=False) as z:
+        arrays = dict(z)
+    arrays["vertices"][5] = np.nan  # a damaged file (save_scan itself refuses to write one)
+    np.savez(bad, **arrays)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"run: {{work: {tmp_path / 'w'}, workers: 1}}\npopulation: {{folder: {pop}}}\n")
+    assert main(["train", str(cfg), "--out", str(tmp_path / "m.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert bad.name in err and "NaN" in err
+    assert not list((tmp_path / "w").rglob("registrations/*.npz"))
