@@ -924,40 +924,12 @@ def read_landmark_definitions(path: str | Path, model) -> LandmarkSelection:
     return LandmarkSelection(names, torch.tensor(verts, dtype=torch.long), torch.tensor(bary, dtype=torch.float32))
 
 
-@dataclass
-class _NpzScan:
-    vertices: np.ndarray
-    faces: np.ndarray
-    landmark_names: list[str]
-    landmarks: np.ndarray
-    meta: dict[str, Any]
-    gt_points: np.ndarray | None = None
-
-
-def _read_scan(path: Path) -> Any:
-    """A scan through ``blsm.learn.scans.load_scan`` if present, else the "blsm-scan" v1 ``.npz``."""
-    try:
-        from blsm.learn.scans import load_scan
-    except ImportError:
-        load_scan = None
-    if load_scan is not None:
-        return load_scan(path)
-    raw = read_npz(path, "scan")
-    if str(raw.get("format", "")) != "blsm-scan":
-        raise ValueError(f"{path}: not a blsm-scan file")
-    for k in ("vertices", "faces", "landmark_names", "landmarks"):
-        if k not in raw:
-            raise ValueError(f"{path}: missing array {k!r}")
-    try:
-        meta = json.loads(str(raw["meta"])) if "meta" in raw else {}
-    except json.JSONDecodeError:
-        raise ValueError(f"{path}: meta is not JSON") from None
-    return _NpzScan(raw["vertices"], raw["faces"], [str(n) for n in raw["landmark_names"]], raw["landmarks"],
-                    meta, raw.get("gt_points"))
-
-
 def main(argv: list[str] | None = None) -> int:
-    """``blsm register SCAN [SCAN ...] --out DIR [--landmarks FILE] [--config YAML] [--model FILE]``."""
+    """``blsm register SCAN [SCAN ...] --out DIR [--landmarks FILE] [--config YAML] [--model FILE]``.
+
+    A scan is a ``blsm-scan`` ``.npz`` or an OBJ / PLY / GLB mesh whose located landmarks are in
+    ``<stem>.landmarks.json`` beside it, or in ``--landmarks FILE`` (one scan only).
+    """
     parser = argparse.ArgumentParser(
         prog="blsm register",
         description="Register the BLSM template to scans (thesis Sec. 5.4.1): landmark fit, then "
@@ -965,7 +937,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("scans", nargs="+", type=Path, help="scan files (blsm-scan .npz, or OBJ/PLY/GLB)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--landmarks", type=Path, help="template landmark definitions YAML "
+    parser.add_argument("--landmarks", type=Path, help="the scan's located landmarks, JSON {name: [x, y, z]} "
+                        "(default: <scan stem>.landmarks.json beside a mesh; inside a .npz scan)")
+    parser.add_argument("--landmark-definitions", type=Path, help="template landmark definitions YAML "
                         "(default: blsm/data/landmarks.yaml via blsm.learn.scans)")
     parser.add_argument("--config", type=Path, help="RegisterConfig YAML (default: configs/blsm/register.yaml "
                         "when present, else the thesis' values)")
@@ -976,13 +950,19 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         import blsm
+        from blsm.learn.scans import load_scan
 
         model = blsm.load(args.model)
         if args.config is not None:
             cfg = load_config(args.config)
         else:
             cfg = load_config(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else RegisterConfig()
-        selection = read_landmark_definitions(args.landmarks, model) if args.landmarks else default_selection(model)
+        selection = (
+            read_landmark_definitions(args.landmark_definitions, model)
+            if args.landmark_definitions else default_selection(model)
+        )
+        if args.landmarks is not None and len(args.scans) != 1:
+            raise ValueError(f"{args.landmarks}: --landmarks names the landmarks of one scan, got {len(args.scans)} scans")
         if args.batch < 1:
             raise ValueError(f"--batch must be >= 1, got {args.batch}")
         jobs = []
@@ -990,7 +970,7 @@ def main(argv: list[str] | None = None) -> int:
             target = args.out / f"{p.stem}.npz"
             if target.exists() and not args.overwrite:
                 raise ValueError(f"{target}: exists (use --overwrite to replace it)")
-            scan = _read_scan(p)
+            scan = load_scan(p, landmarks=args.landmarks, require_landmarks=True)
             meta = dict(getattr(scan, "meta", None) or {})
             meta.setdefault("id", p.stem)
             scan.meta = meta

@@ -299,7 +299,7 @@ def test_cli(tmp_path, model, gen, selection, capsys):
                    "iterations: 3\nscan_samples: 2000\nmodel_samples: 1000\n")
     good = write_scan_npz(scan, tmp_path / "s1.npz")
     out = tmp_path / "out"
-    args = [str(good), "--landmarks", str(lm), "--out", str(out), "--config", str(cfg)]
+    args = [str(good), "--landmark-definitions", str(lm), "--out", str(out), "--config", str(cfg)]
     assert R.main(args) == 0
     reg = R.load_registration(out / "s1.npz")
     assert reg.meta["scan"] == "posed" and reg.meta["iterations"] == 3
@@ -318,11 +318,26 @@ def test_cli(tmp_path, model, gen, selection, capsys):
     }
     for name, override in cases.items():
         p = write_scan_npz(scan, tmp_path / name, **override)
-        assert R.main([str(p), "--landmarks", str(lm), "--out", str(out), "--config", str(cfg)]) == 2
+        assert R.main([str(p), "--landmark-definitions", str(lm), "--out", str(out), "--config", str(cfg)]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and name in err[0], (name, err)
+    # A user's mesh with its located landmarks in a JSON file (--landmarks), e.g. from a scanner.
+    import json
+
+    import trimesh
+
+    mesh = tmp_path / "user_scan.obj"
+    trimesh.Trimesh(scan.vertices, scan.faces, process=False).export(mesh)
+    lm_json = tmp_path / "user_scan_landmarks.json"
+    lm_json.write_text(json.dumps({n: [float(c) for c in x] for n, x in zip(scan.landmark_names, scan.landmarks)}))
+    assert R.main([str(mesh), "--landmarks", str(lm_json), "--out", str(out), "--config", str(cfg)]) == 0
+    assert R.load_registration(out / "user_scan.npz").vertices.shape == (model.num_vertices, 3)
+    assert R.main([str(mesh), str(good), "--landmarks", str(lm_json), "--out", str(tmp_path / "o2")]) == 2
+    assert "one scan" in capsys.readouterr().err
+    assert R.main([str(mesh), "--out", str(tmp_path / "o3"), "--config", str(cfg)]) == 2  # no landmarks
+    assert "user_scan" in capsys.readouterr().err
     (tmp_path / "junk.npz").write_text("not a zip")
-    assert R.main([str(tmp_path / "junk.npz"), "--landmarks", str(lm), "--out", str(out)]) == 2
+    assert R.main([str(tmp_path / "junk.npz"), "--landmark-definitions", str(lm), "--out", str(out)]) == 2
     assert "junk.npz" in capsys.readouterr().err
 
 
