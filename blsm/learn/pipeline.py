@@ -53,6 +53,9 @@ class RunConfig:
         its bone-corrective and shape blendshapes are removed, so nothing the packaged model learnt
         from Anny's known correspondence reaches the registrations (the thesis' starting point, a
         rigged template). ``"model"`` uses the initial model as it is.
+    max_landmark_rms_mm: a registration whose landmark fit (Eq. 5.13, before the free-form stage)
+        leaves a larger landmark RMS has failed (a pose the fit could not reach, e.g. a limb caught
+        in a wrong local minimum); it is listed in the report and left out of the learning.
     """
 
     work: str = "out/train"
@@ -60,6 +63,7 @@ class RunConfig:
     batch: int = 4
     rounds: int = 2
     initial: str = "rig"
+    max_landmark_rms_mm: float = 40.0
 
     def __post_init__(self) -> None:
         if self.rounds < 1:
@@ -209,8 +213,26 @@ def _register_chunk(chunk: list[tuple[str, dict, str]]) -> list[str]:
 
 def registration_step(cfg: PipelineConfig, work: Path, jobs: list[tuple[Path, dict]], model_path: str | None) -> Path:
     """Register every scan without a registration file yet; return the registrations folder."""
+    from blsm.model import DEFAULT_MODEL
+
     out = work / "registrations"
     out.mkdir(parents=True, exist_ok=True)
+    # Registrations are kept across runs only when made with the same settings and model.
+    want = {
+        "registration": json.loads(json.dumps(asdict(cfg.registration))),
+        "model_sha256": io.sha256_file(DEFAULT_MODEL if model_path is None else model_path),
+    }
+    stamp = out / "settings.json"
+    if stamp.is_file():
+        had = json.loads(stamp.read_text())
+        if had != want:
+            raise ValueError(
+                f"{out}: holds registrations made with other settings or another model; "
+                "remove them or set run.work to another folder"
+            )
+    else:
+        with io.atomic_write(stamp, "w") as f:
+            json.dump(want, f, indent=1)
     todo = [(str(p), extra, str(out / f"{p.stem}.npz")) for p, extra in jobs if not (out / f"{p.stem}.npz").is_file()]
     _log(f"registration: {len(jobs) - len(todo)} of {len(jobs)} scans already registered")
     if not todo:
@@ -257,8 +279,14 @@ def learning_step(
     from blsm.learn.train import learn_model, load_registrations
 
     regs = load_registrations([reg_folder])
+    failed = [r for r in regs if _landmark_rms(r) > cfg.run.max_landmark_rms_mm]
+    if failed:
+        _log(f"learning: leaving out {len(failed)} failed registrations (landmark fit RMS above "
+             f"{cfg.run.max_landmark_rms_mm} mm): {', '.join(str(r.meta.get('scan')) for r in failed)}")
+    used = [r for r in regs if _landmark_rms(r) <= cfg.run.max_landmark_rms_mm]
     t0 = time.time()
-    data, report = learn_model(blsm.load(model_path), regs, cfg.train)
+    data, report = learn_model(blsm.load(model_path), used, cfg.train)
+    report["failed_registrations"] = {str(r.meta.get("scan")): round(_landmark_rms(r), 1) for r in failed}
     data.meta["build_command"] = f"blsm train {source} --out {out_model}"
     io.save_model(data, out_model)
     model = blsm.load(out_model)
@@ -267,6 +295,12 @@ def learning_step(
     )
     report["learning_seconds"] = round(time.time() - t0, 1)
     return report
+
+
+def _landmark_rms(reg: Any) -> float:
+    """Landmark RMS (mm) of a registration's landmark fit, before the free-form stage."""
+    m = reg.meta or {}
+    return float(m.get("surface_fit_landmark_rms_mm", m.get("stage1_landmark_rms_mm", 0.0)))
 
 
 def registration_summary(regs: list[Any], population: Path | None = None, faces: Any = None,

@@ -529,6 +529,7 @@ def make_population(
                 jobs.append((i, k + 1, ang[k], ori[k], src[k]))
     files: dict[int, list[str]] = {i: [] for i in range(n_subjects)}
     t1 = time.time()
+    last_log = 0.0
     for start in range(0, len(jobs), batch):
         chunk = jobs[start : start + batch]
         for scan in _make_scans(model, rig, subjects, chunk, art, seed):
@@ -537,7 +538,9 @@ def make_population(
             files[int(scan.meta["subject"][1:])].append(rel)
         done = min(start + batch, len(jobs))
         rate = (time.time() - t1) / done
-        _log(f"{done}/{len(jobs)} scans, {rate:.2f} s per scan, about {rate * (len(jobs) - done):.0f} s left")
+        if time.time() - last_log >= 30 or done == len(jobs):  # a line every 30 s, and the last
+            last_log = time.time()
+            _log(f"{done}/{len(jobs)} scans, {rate:.2f} s per scan, about {rate * (len(jobs) - done):.0f} s left")
     index = {
         "format": POPULATION_FORMAT,
         "version": POPULATION_VERSION,

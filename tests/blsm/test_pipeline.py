@@ -81,6 +81,12 @@ def test_other_population_settings_in_the_same_work_folder_are_refused(run, caps
     err = capsys.readouterr().err.strip()
     assert "population made with other settings" in err and "\n" not in err
     assert not (root / "m3.npz").exists()
+    cfg = yaml.safe_load(path.read_text())
+    cfg["registration"]["iterations"] = 41  # same population, other registration settings
+    other.write_text(yaml.safe_dump(cfg))
+    assert main(["train", str(other), "--out", str(root / "m3.npz")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "registrations made with other settings or another model" in err and "\n" not in err
 
 
 def test_config_errors_are_one_line_naming_file_and_key(tmp_path, capsys):
@@ -117,3 +123,19 @@ def test_a_malformed_scan_stops_the_run_before_any_registration(tmp_path, capsys
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert bad.name in err and "NaN" in err
     assert not list((tmp_path / "w").rglob("registrations/*.npz"))
+
+
+def test_failed_registrations_are_left_out_of_the_learning(run, capsys):
+    path, _, root = run
+    n = len(list((root / "work" / "round1" / "registrations").glob("*.npz")))
+    report = json.loads((root / "model.report.json").read_text())
+    assert report["failed_registrations"] == {}  # none failed in the small run
+    cfg = yaml.safe_load(path.read_text())
+    cfg["run"]["max_landmark_rms_mm"] = 1.0  # below any landmark fit: every registration "failed"
+    cfg["evaluation"]["enabled"] = False
+    strict = root / "strict.yaml"
+    strict.write_text(yaml.safe_dump(cfg))
+    assert main(["train", str(strict), "--out", str(root / "m4.npz")]) == 2
+    err = capsys.readouterr().err
+    assert f"leaving out {n} failed registrations" in err
+    assert not (root / "m4.npz").exists()
