@@ -547,6 +547,40 @@ def pose_angles(model, x: torch.Tensor) -> torch.Tensor:
     return angles_from_unconstrained(x, model.dof_limits.to(x.dtype))
 
 
+def _mnn_pairs(scans, current: np.ndarray, faces: torch.Tensor, cfg: RegisterConfig, rng, dtype):
+    """Fresh surface samples and their mutual nearest neighbours (Eq. 5.16) for every scan.
+
+    Model samples are kept as (faces (P, 3), barycentrics (P, 3)) on the current meshes
+    ``current`` (B, V, 3), so they move with the vertices; scan samples as points (P, 3).
+
+    Returns:
+        per scan ``(faces, barycentrics, scan points, number of pairs)``.
+    """
+    faces_np = faces.numpy()
+    pairs = []
+    for n, sc in enumerate(scans):
+        fi_s, w_s = sample_surface(sc.vertices, sc.faces, cfg.scan_samples, rng)
+        scan_pts = (sc.vertices[sc.faces[fi_s]] * w_s[..., None]).sum(1)
+        fi_m, w_m = sample_surface(current[n], faces_np, cfg.model_samples, rng)
+        model_pts = (current[n][faces_np[fi_m]] * w_m[..., None]).sum(1)
+        im, js = mutual_nearest_neighbours(model_pts, scan_pts)
+        pairs.append((
+            faces[torch.as_tensor(fi_m[im])],
+            torch.as_tensor(w_m[im], dtype=dtype),
+            torch.as_tensor(scan_pts[js], dtype=dtype),
+            torch.tensor(float(len(im))),
+        ))
+    return pairs
+
+
+def _landmark_targets(scans, dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Located landmarks (B, L, 3) with NaN rows zeroed, their mask (B, L) and count (B,)."""
+    x_lm = torch.as_tensor(np.stack([s.landmarks for s in scans]), dtype=dtype)  # (B, L, 3)
+    lm_mask = torch.isfinite(x_lm).all(-1)
+    x_lm = torch.where(lm_mask[..., None], x_lm, torch.zeros_like(x_lm))
+    return x_lm, lm_mask, lm_mask.sum(1).clamp(min=1).to(dtype)
+
+
 def fit_surface(
     model,
     scans: Sequence[ScanData],
@@ -585,12 +619,8 @@ def fit_surface(
     log_b = stage1.bone_scales.log().clone().requires_grad_(True)
     go = stage1.global_orient.clone().requires_grad_(True)
     tr = stage1.transl.clone().requires_grad_(True)
-    x_lm = torch.as_tensor(np.stack([s.landmarks for s in scans]), dtype=dtype)  # (B, L, 3)
-    lm_mask = torch.isfinite(x_lm).all(-1)
-    x_lm = torch.where(lm_mask[..., None], x_lm, torch.zeros_like(x_lm))
-    lm_count = lm_mask.sum(1).clamp(min=1).to(dtype)
+    x_lm, lm_mask, lm_count = _landmark_targets(scans, dtype)
     faces = model.faces
-    faces_np = faces.numpy()
 
     def mesh() -> torch.Tensor:
         tmpl = model.template + model.shape_decoder(beta) if use_shape else model.template
@@ -600,15 +630,7 @@ def fit_surface(
     for _ in range(cfg.surface_rounds):
         with torch.no_grad():
             cur = mesh().numpy()
-        pairs = []
-        for n, sc in enumerate(scans):
-            fi_s, w_s = sample_surface(sc.vertices, sc.faces, cfg.scan_samples, rng)
-            scan_pts = (sc.vertices[sc.faces[fi_s]] * w_s[..., None]).sum(1)
-            fi_m, w_m = sample_surface(cur[n], faces_np, cfg.model_samples, rng)
-            model_pts = (cur[n][faces_np[fi_m]] * w_m[..., None]).sum(1)
-            im, js = mutual_nearest_neighbours(model_pts, scan_pts)
-            pairs.append((faces[torch.as_tensor(fi_m[im])], torch.as_tensor(w_m[im], dtype=dtype),
-                          torch.as_tensor(scan_pts[js], dtype=dtype)))
+        pairs = [p[:3] for p in _mnn_pairs(scans, cur, faces, cfg, rng, dtype)]
         opt = torch.optim.LBFGS(params, lr=1.0, max_iter=cfg.surface_iterations, line_search_fn="strong_wolfe",
                                 tolerance_grad=1e-12, tolerance_change=1e-15, history_size=20)
 
@@ -685,15 +707,11 @@ def refine(
         # LBS is linear in the template for fixed transforms: S^ = S^_T + A_i V_D_i (Eq. 12).
         lin = torch.einsum("vj,bjrc->bvrc", model.weights, posed.transforms[..., :3])  # (B, V, 3, 3)
     faces = model.faces
-    faces_np = faces.numpy()
     edges = mesh_edges(faces)
     hand_ids = [model.bone_names.index(n) for n in HAND_BONES]
     is_hand = torch.isin(model.vertex_bones, torch.tensor(hand_ids))
     hand_edges = edges[is_hand[edges[:, 0]] & is_hand[edges[:, 1]]]
-    x_lm = torch.as_tensor(np.stack([s.landmarks for s in scans]), dtype=dtype)  # (B, L, 3)
-    lm_mask = torch.isfinite(x_lm).all(-1)
-    x_lm = torch.where(lm_mask[..., None], x_lm, torch.zeros_like(x_lm))
-    lm_count = lm_mask.sum(1).clamp(min=1).to(dtype)
+    x_lm, lm_mask, lm_count = _landmark_targets(scans, dtype)
 
     v_d = torch.zeros_like(s_t, requires_grad=True)
     opt = torch.optim.Adam([v_d], lr=cfg.lr)
@@ -704,20 +722,7 @@ def refine(
     for it in range(cfg.iterations):
         s_hat = s_t + torch.einsum("bvrc,bvc->bvr", lin, v_d)  # (B, V, 3)
         if it % cfg.mnn_refresh == 0:
-            pairs = []
-            cur = s_hat.detach().numpy()
-            for n, sc in enumerate(scans):
-                fi_s, w_s = sample_surface(sc.vertices, sc.faces, cfg.scan_samples, rng)
-                scan_pts = (sc.vertices[sc.faces[fi_s]] * w_s[..., None]).sum(1)
-                fi_m, w_m = sample_surface(cur[n], faces_np, cfg.model_samples, rng)
-                model_pts = (cur[n][faces_np[fi_m]] * w_m[..., None]).sum(1)
-                im, js = mutual_nearest_neighbours(model_pts, scan_pts)
-                pairs.append((
-                    faces[torch.as_tensor(fi_m[im])],
-                    torch.as_tensor(w_m[im], dtype=dtype),
-                    torch.as_tensor(scan_pts[js], dtype=dtype),
-                    torch.tensor(float(len(im))),
-                ))
+            pairs = _mnn_pairs(scans, s_hat.detach().numpy(), faces, cfg, rng, dtype)
         e_mnn = torch.stack([
             ((s_hat[n, f] * w[..., None]).sum(1) - tgt).square().sum(-1).mean() if len(tgt) else s_hat.new_zeros(())
             for n, (f, w, tgt, _) in enumerate(pairs)
