@@ -9,7 +9,6 @@ so an empty file is the embedded default configuration.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 

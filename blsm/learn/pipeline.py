@@ -31,8 +31,8 @@ from typing import Any
 import torch
 
 from blsm import io
-from blsm.learn.register import RegisterConfig
 from blsm.config import config_from_dict
+from blsm.learn.register import RegisterConfig
 from blsm.learn.train import TrainConfig
 
 

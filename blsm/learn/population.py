@@ -44,8 +44,8 @@ import torch
 from blsm.build_anny import ANNY_TO_WORLD, _interp, anny_bone_groups, barycentric_embedding
 from blsm.io import atomic_write
 from blsm.learn.posing import pose as blsm_pose
-from blsm.mesh import vertex_normals
 from blsm.learn.scans import Scan, landmark_names, landmark_points, save_scan
+from blsm.mesh import vertex_normals
 
 POPULATION_FORMAT = "blsm-population"
 POPULATION_VERSION = 1

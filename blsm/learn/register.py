@@ -41,7 +41,6 @@ import json
 import math
 import sys
 import time
-import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path

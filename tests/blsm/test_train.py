@@ -16,8 +16,8 @@ import torch
 import blsm
 from blsm import io
 from blsm.learn import train as T
-from blsm.model import DEFAULT_MODEL, BLSM
 from blsm.mocap.prior import load_prior
+from blsm.model import BLSM, DEFAULT_MODEL
 
 PRIOR = Path(blsm.__file__).parent / "data" / "pose_prior_cmu.npz"
 
