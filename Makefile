@@ -33,7 +33,7 @@ model: $(STAMP)
 # The model learnt from scans (thesis Sec. 5.4): 1000 Anny stand-in subjects, registration,
 # learning, SMPL-reimpl and the held-out evaluation into docs/ (hours on 2 cores; resumable).
 learned-model: $(STAMP)
-	$(BIN)/blsm train configs/blsm/train_default.yaml --out out/train/blsm_learned.npz
+	$(BIN)/blsm train configs/blsm/train_default.yaml --out out/train/blsm_learned.npz --overwrite
 
 atoms: $(STAMP)
 	$(BIN)/blsm atoms --out out/atoms

@@ -448,8 +448,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("config", type=Path, help="run config YAML (configs/blsm/train_default.yaml)")
     parser.add_argument("--out", type=Path, required=True, help="the learned model file (.npz)")
     parser.add_argument("--model", default=None, help="initial model (default: the packaged one)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing model file")
     args = parser.parse_args(argv)
     try:
+        if args.out.exists() and not args.overwrite:
+            raise ValueError(f"{args.out}: exists; pass --overwrite to replace it")
         run(load_config(args.config), args.out, args.model, str(args.config))
     except ValueError as exc:
         print(f"blsm train: error: {str(exc).splitlines()[0]}", file=sys.stderr)

@@ -67,6 +67,8 @@ def test_a_second_run_reuses_the_population_and_registrations(run, capsys):
     again.write_text(yaml.safe_dump(cfg))
     assert main(["train", str(again), "--out", str(root / "model2.npz")]) == 0
     err = capsys.readouterr().err
+    assert main(["train", str(again), "--out", str(root / "model2.npz")]) == 2  # never replaced silently
+    assert "model2.npz: exists; pass --overwrite" in capsys.readouterr().err
     assert f"registration: {len(regs)} of {len(regs)} scans already registered" in err
     assert {p.name: p.stat().st_mtime_ns for p in regs} == stamp
 
