@@ -20,6 +20,8 @@ Units: metres and radians; errors are Euclidean per-vertex distances in metres.
 
 from __future__ import annotations
 
+import abc
+
 from dataclasses import dataclass, field
 
 import torch
@@ -40,7 +42,7 @@ NUM_STAGES = 4
 MM2 = 1e6  # losses in mm^2: keeps L-BFGS tolerances meaningful in float32
 
 
-class Fittable:
+class Fittable(abc.ABC):
     """What :func:`staged_fit` needs from a model (a small protocol with shared helpers).
 
     Subclasses set ``skeleton`` (a :class:`blsm.BLSM` giving bones, DoF table and blend weights),
@@ -51,9 +53,9 @@ class Fittable:
     skeleton: torch.nn.Module
     coeff_sizes: dict[str, int]
 
+    @abc.abstractmethod
     def vertices(self, params: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B, V, 3) posed vertices in metres of ``params`` (see :func:`staged_fit`)."""
-        raise NotImplementedError
 
     @property
     def num_coeffs_max(self) -> int:

@@ -119,5 +119,5 @@ def test_bad_inputs(model):
         staged_fit(f, model.template[None], fixed_coeffs={"betas": torch.zeros(1, 3)})
     with pytest.raises(ValueError, match="iterations"):
         FitConfig(iterations=(1, 2, 3))
-    with pytest.raises(NotImplementedError):
-        Fittable().vertices({})
+    with pytest.raises(TypeError, match="abstract"):  # a model must say how it makes vertices
+        Fittable()
