@@ -285,13 +285,14 @@ def learning_step(
              f"{cfg.run.max_landmark_rms_mm} mm): {', '.join(str(r.meta.get('scan')) for r in failed)}")
     used = [r for r in regs if _landmark_rms(r) <= cfg.run.max_landmark_rms_mm]
     t0 = time.time()
-    data, report = learn_model(blsm.load(model_path), used, cfg.train)
+    initial = blsm.load(model_path)
+    data, report = learn_model(initial, used, cfg.train)
     report["failed_registrations"] = {str(r.meta.get("scan")): round(_landmark_rms(r), 1) for r in failed}
     data.meta["build_command"] = f"blsm train {source} --out {out_model}"
     io.save_model(data, out_model)
-    model = blsm.load(out_model)
+    # The learnt model keeps the initial one's topology and parts: no need to read it back.
     report["registration"] = registration_summary(
-        regs, population, model.faces.numpy(), model.part_names, model.vertex_parts.numpy()
+        regs, population, initial.faces.numpy(), initial.part_names, initial.vertex_parts.numpy()
     )
     report["learning_seconds"] = round(time.time() - t0, 1)
     return report
