@@ -424,13 +424,34 @@ def build(
     return data, report
 
 
+def rig_of(data: io.ModelData) -> io.ModelData:
+    """The rig of a model: what the learning pipeline starts from (thesis Sec. 5.4, a rigged template).
+
+    Template, UVs, skeleton (heads, frames, DoF table), blend weights, bone basis, parts and
+    keypoints are kept; the learnt blendshapes are removed (bone correctives zero, one zero shape
+    component), so nothing learnt from Anny's known correspondence reaches a registration.
+    """
+    a = dict(data.arrays)
+    a["bone_correctives"] = np.zeros_like(a["bone_correctives"])
+    a["shape_basis"] = np.zeros((1, *a["template"].shape), np.float32)
+    a["population_shape"] = np.zeros((len(a["population_shape"]), 1), np.float32)
+    meta = {**data.meta, "name": "blsm-rig",
+            "build_report": {"rig_of": f"{data.meta.get('name', '?')} ({data.meta.get('build_command', '?')})"}}
+    return io.ModelData(arrays=a, meta=meta, dof_table_yaml=data.dof_table_yaml)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="blsm build-anny", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "data" / "blsm_anny_v1.npz")
+    parser.add_argument("--out", type=Path, required=True, help="model file to write (.npz)")
     parser.add_argument("--bodies", type=int, default=600)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rig", action="store_true",
+                        help="write only the rig (template, skeleton, weights; no blendshapes): the "
+                             "starting point of `blsm train` (blsm/data/blsm_anny_rig.npz)")
     args = parser.parse_args(argv)
     data, report = build(n_bodies=args.bodies, seed=args.seed)
+    if args.rig:
+        data = rig_of(data)
     io.save_model(data, args.out)
     print(json.dumps(report, indent=1))
     print(f"wrote {args.out}")

@@ -26,6 +26,11 @@ from blsm.kinematics import (
 from blsm.lbs import blend_shapes, linear_blend_skinning, linear_shape
 
 DEFAULT_MODEL = Path(__file__).parent / "data" / "blsm_anny_v1.npz"
+"""The packaged model: ``blsm train configs/blsm/train_default.yaml`` (``make model``)."""
+DEFAULT_RIG = Path(__file__).parent / "data" / "blsm_anny_rig.npz"
+"""The packaged rig the model is learnt from: template (on the mean Anny body), skeleton, blend
+weights, no blendshapes (``blsm build-anny --rig``). It fixes the topology, and with it the
+ground-truth correspondence of Anny stand-in scans (:mod:`blsm.learn.population`)."""
 
 
 @dataclass

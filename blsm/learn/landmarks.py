@@ -467,8 +467,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     import blsm
     from blsm.io import atomic_write
+    from blsm.model import DEFAULT_RIG
 
-    model = blsm.load()
+    model = blsm.load(DEFAULT_RIG)  # landmarks are defined on the rig's template
     lms = compute_landmarks(model)
     with atomic_write(args.out, "w") as fh:
         fh.write(to_yaml(lms))

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from blsm import io
@@ -143,8 +144,10 @@ def load_config(path: str | Path) -> PipelineConfig:
 # Steps
 
 
-def population_step(cfg: PipelineConfig, work: Path) -> tuple[Path, dict]:
-    """The population folder and its index: the configured one, or made (once) in WORK."""
+def population_step(cfg: PipelineConfig, work: Path, model_path: str) -> tuple[Path, dict]:
+    """The population folder and its index: the configured one, or made (once) in WORK with the
+    initial model's template and skeleton (the ground-truth correspondence is its template's)."""
+    import blsm
     from blsm.learn.population import make_population, read_population
 
     p = cfg.population
@@ -153,7 +156,7 @@ def population_step(cfg: PipelineConfig, work: Path) -> tuple[Path, dict]:
         return folder, read_population(folder)
     folder = work / "population"
     want = {"subjects": p.subjects, "posed_subjects": p.posed_subjects, "poses": p.poses, "seed": p.seed,
-            "test_fraction": p.test_fraction, "motions": p.motions}
+            "test_fraction": p.test_fraction, "motions": p.motions, "rig_sha256": rig_sha256(model_path)}
     stamp = folder / "pipeline.json"
     if (folder / "index.json").is_file():
         had = json.loads(stamp.read_text()) if stamp.is_file() else None
@@ -167,12 +170,23 @@ def population_step(cfg: PipelineConfig, work: Path) -> tuple[Path, dict]:
     t0 = time.time()
     index = make_population(
         folder, p.subjects, p.posed_subjects, p.poses, p.seed, p.test_fraction,
-        motions=Path(p.motions) if p.motions else None,
+        motions=Path(p.motions) if p.motions else None, model=blsm.load(model_path),
     )  # fmt: skip
     with io.atomic_write(stamp, "w") as f:
         json.dump(want, f)
     _log(f"population: {sum(len(s['scans']) for s in index['subjects'])} scans in {time.time() - t0:.0f} s")
     return folder, index
+
+
+def rig_sha256(model_path: str) -> str:
+    """SHA-256 of what a population depends on in a model: template, skeleton, weights, DoF table."""
+    import hashlib
+
+    data = io.read_model(model_path)
+    h = hashlib.sha256(data.dof_table_yaml.encode())
+    for key in ("template", "faces", "heads", "frames", "weights"):
+        h.update(np.ascontiguousarray(data.arrays[key]).tobytes())
+    return h.hexdigest()
 
 
 def scan_jobs(folder: Path, index: dict) -> list[tuple[Path, dict]]:
@@ -211,16 +225,14 @@ def _register_chunk(chunk: list[tuple[str, dict, str]]) -> list[str]:
     return [target for _, _, target in chunk]
 
 
-def registration_step(cfg: PipelineConfig, work: Path, jobs: list[tuple[Path, dict]], model_path: str | None) -> Path:
+def registration_step(cfg: PipelineConfig, work: Path, jobs: list[tuple[Path, dict]], model_path: str) -> Path:
     """Register every scan without a registration file yet; return the registrations folder."""
-    from blsm.model import DEFAULT_MODEL
-
     out = work / "registrations"
     out.mkdir(parents=True, exist_ok=True)
     # Registrations are kept across runs only when made with the same settings and model.
     want = {
         "registration": json.loads(json.dumps(asdict(cfg.registration))),
-        "model_sha256": io.sha256_file(DEFAULT_MODEL if model_path is None else model_path),
+        "model_sha256": io.sha256_file(model_path),
     }
     stamp = out / "settings.json"
     if stamp.is_file():
@@ -312,8 +324,6 @@ def registration_summary(regs: list[Any], population: Path | None = None, faces:
     component along the true surface normal (off the surface) and the rest (sliding along the
     surface), and averaged per body part (``vertex_parts``, ``part_names``).
     """
-    import numpy as np
-
     from blsm.mesh import vertex_normals
 
     out: dict[str, Any] = {}
@@ -390,19 +400,11 @@ def evaluation_step(cfg: PipelineConfig, reg_folder: Path, population: Path, out
 
 
 def strip_to_rig(model_path: str | None, out: Path) -> Path:
-    """Write the initial model without what it learnt: bone-corrective blendshapes zero, one zero
-    shape component; template, skeleton, blend weights, bone basis and keypoints kept."""
-    import numpy as np
+    """Write the rig of the initial model (:func:`blsm.build_anny.rig_of`) to ``out``."""
+    from blsm.build_anny import rig_of
+    from blsm.model import DEFAULT_RIG
 
-    from blsm.model import DEFAULT_MODEL
-
-    data = io.read_model(DEFAULT_MODEL if model_path is None else model_path)
-    a = dict(data.arrays)
-    a["bone_correctives"] = np.zeros_like(a["bone_correctives"])
-    a["shape_basis"] = np.zeros((1, *a["template"].shape), np.float32)
-    a["population_shape"] = np.zeros((len(a["population_shape"]), 1), np.float32)
-    meta = {**data.meta, "name": "blsm-rig", "build_report": {"stripped_from": str(data.path)}}
-    io.save_model(io.ModelData(arrays=a, meta=meta, dof_table_yaml=data.dof_table_yaml), out)
+    io.save_model(rig_of(io.read_model(DEFAULT_RIG if model_path is None else model_path)), out)
     return out
 
 
@@ -410,21 +412,24 @@ def run(cfg: PipelineConfig, out_model: Path, model_path: str | None = None, sou
     """The whole pipeline (see the module docstring); returns the report (also written to disk)."""
     import dataclasses
 
+    from blsm.model import DEFAULT_RIG
+
     t0 = time.time()
     work = Path(cfg.run.work)
-    folder, index = population_step(cfg, work)
+    initial = str(DEFAULT_RIG) if model_path is None else model_path
+    folder, index = population_step(cfg, work, initial)
     jobs = scan_jobs(folder, index)
     if not jobs:
         raise ValueError(f"{folder}: the population holds no scans")
-    current = model_path
+    current = initial
     reg_cfg = cfg.registration
     if cfg.run.initial == "rig":
-        current = str(strip_to_rig(model_path, work / "initial_rig.npz"))
+        current = str(strip_to_rig(initial, work / "initial_rig.npz"))
         # The rig has no shape space to initialise stage 1 with (round 1 is the thesis' Eq. 5.13).
         reg_cfg = dataclasses.replace(reg_cfg, shape_init=False)
     rounds: list[dict] = []
     for r in range(1, cfg.run.rounds + 1):
-        _log(f"round {r} of {cfg.run.rounds}: registering with {current or 'the packaged model'}")
+        _log(f"round {r} of {cfg.run.rounds}: registering with {current}")
         round_cfg = dataclasses.replace(cfg, registration=reg_cfg)
         reg_folder = registration_step(round_cfg, work / f"round{r}", jobs, current)
         target = out_model if r == cfg.run.rounds else work / f"round{r}" / "model.npz"
@@ -448,7 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="blsm train", description=__doc__.splitlines()[0])
     parser.add_argument("config", type=Path, help="run config YAML (configs/blsm/train_default.yaml)")
     parser.add_argument("--out", type=Path, required=True, help="the learned model file (.npz)")
-    parser.add_argument("--model", default=None, help="initial model (default: the packaged one)")
+    parser.add_argument("--model", default=None, help="initial model (default: the packaged rig, blsm/data/blsm_anny_rig.npz)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing model file")
     args = parser.parse_args(argv)
     try:

@@ -46,6 +46,7 @@ from blsm.io import atomic_write
 from blsm.learn.posing import pose as blsm_pose
 from blsm.learn.scans import Scan, landmark_names, landmark_points, save_scan
 from blsm.mesh import vertex_normals
+from blsm.model import DEFAULT_RIG
 
 POPULATION_FORMAT = "blsm-population"
 POPULATION_VERSION = 1
@@ -98,7 +99,7 @@ def anny_rig(model) -> AnnyRig:
     """The :class:`AnnyRig` of ``model`` (cached per model object).
 
     The embedding is computed on the mean of 600 Anny bodies (phenotypes uniform, seed 0, no local
-    changes), the population the packaged template was built from (``blsm build-anny``).
+    changes), the population the packaged rig's template was built from (``blsm build-anny --rig``).
     """
     key = id(model)
     if key in _RIGS:
@@ -506,7 +507,7 @@ def make_population(
     if (out / "index.json").exists() and not overwrite:
         raise ValueError(f"{out}: a population already exists (use overwrite=True / --overwrite)")
     art = Artefacts() if artefacts is None else artefacts
-    model = blsm.load() if model is None else model
+    model = blsm.load(DEFAULT_RIG) if model is None else model  # the template fixes the ground truth
     t0 = time.time()
     rig = anny_rig(model)
     clips = None

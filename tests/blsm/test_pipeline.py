@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import yaml
 
@@ -89,6 +90,17 @@ def test_other_population_settings_in_the_same_work_folder_are_refused(run, caps
     assert main(["train", str(other), "--out", str(root / "m3.npz")]) == 2
     err = capsys.readouterr().err.strip().splitlines()[-1]  # after the progress lines
     assert err.startswith("blsm train: error:") and "registrations made with other settings or another model" in err
+    # The population is made with the initial rig (its template is the ground truth's): another rig
+    # is another population.
+    from blsm import io
+    from blsm.model import DEFAULT_RIG
+
+    rig = io.read_model(DEFAULT_RIG)
+    rig.arrays["template"] = rig.arrays["template"] + np.float32(0.001)
+    io.save_model(rig, root / "moved_rig.npz")
+    assert main(["train", str(path), "--out", str(root / "m3.npz"), "--model", str(root / "moved_rig.npz")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "population made with other settings" in err and not (root / "m3.npz").exists()
 
 
 def test_config_errors_are_one_line_naming_file_and_key(tmp_path, capsys):
@@ -108,8 +120,6 @@ def test_config_errors_are_one_line_naming_file_and_key(tmp_path, capsys):
 
 
 def test_a_malformed_scan_stops_the_run_before_any_registration(tmp_path, capsys):
-    import numpy as np
-
     from blsm.learn.population import make_population
 
     pop = tmp_path / "pop"
