@@ -379,10 +379,15 @@ def _anny() -> Any:
 def _anny_embedding(model: BLSM) -> tuple[np.ndarray, np.ndarray]:
     """Where each BLSM template vertex lies on Anny's surface: (face (Vb,), barycentric (Vb, 3)).
 
-    The packaged model was built on the mean of 600 Anny bodies (seed 0, `blsm build-anny`); the
-    template vertices are embedded on that same mean surface by closest point.
+    The packaged rig's template (:data:`blsm.model.DEFAULT_RIG`, ``blsm build-anny --rig``) lies on
+    the mean of 600 Anny bodies (seed 0); its vertices are embedded on that same mean surface by
+    closest point. A model with the rig's topology (the packaged one, learnt from it) uses the
+    rig's template, so the embedding does not depend on what the model learnt; a model of another
+    topology uses its own template.
     """
+    from blsm import io
     from blsm.build_anny import ANNY_TO_WORLD, barycentric_embedding
+    from blsm.model import DEFAULT_RIG
 
     key = (id(model), model.num_vertices)
     if key in _EMBEDDING:
@@ -393,7 +398,10 @@ def _anny_embedding(model: BLSM) -> tuple[np.ndarray, np.ndarray]:
     with torch.no_grad():
         coeffs = am.get_phenotype_blendshape_coefficients(**{k: pheno[:, i] for i, k in enumerate(am.phenotype_labels)})
         verts = am.get_rest_vertices(coeffs).mean(0).numpy() @ ANNY_TO_WORLD.T
-    _EMBEDDING[key] = barycentric_embedding(verts, am.faces.numpy(), model.template.numpy().astype(np.float64))
+    template = io.read_model(DEFAULT_RIG).arrays["template"]
+    if template.shape[0] != model.num_vertices:
+        template = model.template.numpy()
+    _EMBEDDING[key] = barycentric_embedding(verts, am.faces.numpy(), template.astype(np.float64))
     return _EMBEDDING[key]
 
 
