@@ -25,7 +25,8 @@ def _load(path: str | None):
 def cmd_info(args: argparse.Namespace) -> int:
     model = _load(args.model)
     meta = model.meta
-    rep = meta.get("build_report", {})
+    rep = meta.get("build_report") or meta.get("train_report") or {}
+    n_bodies = rep.get("n_bodies", rep.get("registrations", {}).get("train_rest", "?"))
     print(f"BLSM model: {meta.get('name')} v{meta.get('version')} ({model.meta.get('source', '?')})")
     print(f"  file:        {args.model or 'packaged'}")
     print(f"  mesh:        {model.num_vertices} vertices, {int(model.faces.shape[0])} faces, "
@@ -44,7 +45,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     print(f"  bone coeffs: {model.num_bone_coeffs}", end="")
     if "bone_pca_explained_first3" in rep:
         print(f" (first 3 explain {100 * rep['bone_pca_explained_first3']:.2f} % of bone-length variance"
-              f" over {rep['n_bodies']} bodies)")
+              f" over {n_bodies} bodies)")
     else:
         print()
     print(f"  shape coeffs: {model.num_shape_coeffs} ({type(model.shape_decoder).__name__})")

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import datetime
 import json
 import math
 import sys
@@ -931,6 +932,7 @@ def _assemble(initial_model, mdl: _Model, st_rest: _State, report: dict, cfg: Tr
     meta = dict(src.meta)
     meta.pop("build_report", None)
     meta["name"] = "blsm-learned"
+    meta["built"] = datetime.date.today().isoformat()
     meta["train_report"] = report
     meta["train_config"] = dataclasses.asdict(cfg)
     return io.ModelData(arrays=arrays, meta=meta, dof_table_yaml=src.dof_table.source)
