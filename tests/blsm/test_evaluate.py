@@ -22,7 +22,7 @@ from blsm.learn.evaluate import (
 from blsm.learn.fit import BLSMFittable, FitConfig
 from blsm.learn.smpl_reimpl import SMPLReimpl, SMPLReimplFittable, ring_regressor
 
-FIT = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=3)
+FIT = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=15)
 
 
 def _write_regs(model, folder, gen, subjects=3, poses=2):

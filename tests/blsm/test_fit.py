@@ -94,7 +94,7 @@ def test_pose_only_fit_keeps_fixed_shape(model, gen):
     f = BLSMFittable(model)
     target, truth = _bodies(model, gen, 2)
     fixed = {"bone": truth["bone"], "shape": truth["shape"]}
-    cfg = FitConfig(iterations=(60, 60, 60, 150), lm_iterations=8)
+    cfg = FitConfig(iterations=(60, 60, 60, 150), lm_iterations=15)
     res = staged_fit(f, target, config=cfg, fixed_coeffs=fixed)
     assert torch.equal(res.params["bone"], truth["bone"]) and torch.equal(res.params["shape"], truth["shape"])
     assert float(res.mean_error.max()) < 1e-3

@@ -13,8 +13,11 @@ from blsm.model import DEFAULT_MODEL
 def test_packaged_model_embeds_the_dof_table_file():
     data = io.read_model(DEFAULT_MODEL)
     assert data.dof_table_yaml == DEFAULT_DOF_TABLE.read_text()
-    report = data.meta["build_report"]
-    assert report["n_bodies"] >= 500
+    # The packaged model is the scan pipeline's output (blsm train, default config).
+    assert data.meta["name"] == "blsm-learned"
+    assert data.meta["build_command"].startswith("blsm train configs/blsm/train_default.yaml")
+    report = data.meta["train_report"]
+    assert report["registrations"]["train_rest"] >= 500
     assert 0.9 < report["bone_pca_explained_first3"] <= 1.0
 
 

@@ -347,8 +347,9 @@ def test_population_scan_registers(model, selection, tmp_path):
     from blsm.learn.population import make_population, read_population
     from blsm.learn.scans import load_scan
 
+    # The population is made with the packaged rig (its template defines the ground truth).
     make_population(out=tmp_path / "pop", n_subjects=1, posed_subjects=1, poses_per_subject=1, seed=3,
-                    test_fraction=0.0, model=model)
+                    test_fraction=0.0)
     index = read_population(tmp_path / "pop")
     scan = load_scan(tmp_path / "pop" / index["subjects"][0]["scans"][1])  # the posed scan
     reg = R.register(model, [scan], R.RegisterConfig(), selection=selection, progress=False)[0]

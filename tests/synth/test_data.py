@@ -80,7 +80,7 @@ def test_dataloader_with_two_workers_yields_documented_shapes(root):
     b, k = batches[0], len(ds.keypoint_names)
     shapes = {
         "image": (4, 3, 64, 64), "keypoints_2d": (4, k, 3), "keypoints_3d": (4, k, 3), "pose": (4, 47),
-        "angles": (4, 47), "bone": (4, 10), "shape": (4, 16), "global_orient": (4, 3), "transl_cam": (4, 3),
+        "angles": (4, 47), "bone": (4, 10), "shape": (4, 64), "global_orient": (4, 3), "transl_cam": (4, 3),
         "K_crop": (4, 3, 3), "affine": (4, 3, 3), "mask": (4, 64, 64), "parts": (4, 64, 64),
         "index": (4,), "person": (4,),
     }  # fmt: skip

@@ -59,7 +59,7 @@ def test_spin_export_has_the_fields_and_mapping(root, tmp_path):
     n = len(expected)
     shapes = {
         "imgname": (n,), "center": (n, 2), "scale": (n,), "part": (n, 24, 3), "S": (n, 24, 4),
-        "pose": (n, 47), "angles": (n, 47), "bone": (n, 10), "shape": (n, 16), "global_orient": (n, 3),
+        "pose": (n, 47), "angles": (n, 47), "bone": (n, 10), "shape": (n, 64), "global_orient": (n, 3),
         "transl_cam": (n, 3), "K": (n, 3, 3), "has_smpl": (n,), "has_blsm": (n,),
     }  # fmt: skip
     assert {k: data[k].shape for k in data.files} == shapes
