@@ -50,10 +50,12 @@ class RunConfig:
     rounds: registration + learning rounds; round r > 1 registers the scans again with the model
         learned in round r - 1 (its shape space initialises stage 1), as SMPL-type models are
         trained by alternating registration and model fitting.
-    initial: ``"rig"`` starts from the initial model's template, skeleton and blend weights only:
-        its bone-corrective and shape blendshapes are removed, so nothing the packaged model learnt
-        from Anny's known correspondence reaches the registrations (the thesis' starting point, a
-        rigged template). ``"model"`` uses the initial model as it is.
+    initial: ``"rig"`` starts from the initial model's (``--model``, default the packaged rig
+        ``blsm/data/blsm_anny_rig.npz``) template, skeleton and blend weights only: any
+        bone-corrective and shape blendshapes are removed, so nothing a model learnt from Anny's
+        known correspondence reaches the registrations (the thesis' starting point, a rigged
+        template). ``"model"`` uses the initial model as it is (its shape space then initialises
+        stage 1).
     max_landmark_rms_mm: a registration whose landmark fit (Eq. 5.13, before the free-form stage)
         leaves a larger landmark RMS has failed (a pose the fit could not reach, e.g. a limb caught
         in a wrong local minimum); it is listed in the report and left out of the learning.
