@@ -28,7 +28,7 @@ bench: $(STAMP)
 
 # The packaged model, learnt from scans (thesis Sec. 5.4): 1000 Anny stand-in subjects made with
 # the packaged rig, registration, learning, SMPL-reimpl and the held-out evaluation into docs/
-# (about 2 hours on 2 cores; an interrupted run continues from out/train).
+# (about 2.5 hours on 2 cores; an interrupted run continues from out/train).
 model: $(STAMP)
 	$(BIN)/blsm train configs/blsm/train_default.yaml --out blsm/data/blsm_anny_v1.npz --overwrite
 
