@@ -27,6 +27,7 @@ import math
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -422,6 +423,19 @@ def build(
     }
     data = io.ModelData(arrays=arrays, meta=meta, dof_table_yaml=dofs.source)
     return data, report
+
+
+def anny_mean_body(am: Any, n_bodies: int = 600, seed: int = 0) -> np.ndarray:
+    """(Va, 3) mean rest body (BLSM axes) of ``n_bodies`` Anny phenotypes drawn uniformly with
+    ``seed``: the surface the packaged template was cut from, on which template vertices are
+    embedded by closest point (:func:`barycentric_embedding`)."""
+    gen = torch.Generator().manual_seed(seed)
+    pheno = torch.rand(n_bodies, len(am.phenotype_labels), generator=gen, dtype=torch.float64)
+    with torch.no_grad():
+        coeffs = am.get_phenotype_blendshape_coefficients(
+            **{k: pheno[:, i] for i, k in enumerate(am.phenotype_labels)}
+        )
+        return am.get_rest_vertices(coeffs).mean(0).numpy() @ ANNY_TO_WORLD.T
 
 
 def rig_of(data: io.ModelData) -> io.ModelData:

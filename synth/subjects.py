@@ -386,18 +386,14 @@ def _anny_embedding(model: BLSM) -> tuple[np.ndarray, np.ndarray]:
     topology uses its own template.
     """
     from blsm import io
-    from blsm.build_anny import ANNY_TO_WORLD, barycentric_embedding
+    from blsm.build_anny import anny_mean_body, barycentric_embedding
     from blsm.model import DEFAULT_RIG
 
     key = (id(model), model.num_vertices)
     if key in _EMBEDDING:
         return _EMBEDDING[key]
     am = _anny()
-    gen = torch.Generator().manual_seed(0)
-    pheno = torch.rand(600, len(am.phenotype_labels), generator=gen, dtype=torch.float64)
-    with torch.no_grad():
-        coeffs = am.get_phenotype_blendshape_coefficients(**{k: pheno[:, i] for i, k in enumerate(am.phenotype_labels)})
-        verts = am.get_rest_vertices(coeffs).mean(0).numpy() @ ANNY_TO_WORLD.T
+    verts = anny_mean_body(am)
     template = io.read_model(DEFAULT_RIG).arrays["template"]
     if template.shape[0] != model.num_vertices:
         template = model.template.numpy()

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from blsm.build_anny import ANNY_TO_WORLD, _interp, anny_bone_groups, barycentric_embedding
+from blsm.build_anny import ANNY_TO_WORLD, _interp, anny_bone_groups, anny_mean_body, barycentric_embedding
 from blsm.io import atomic_write
 from blsm.learn.posing import pose as blsm_pose
 from blsm.learn.scans import Scan, landmark_names, landmark_points, save_scan
@@ -113,13 +113,7 @@ def anny_rig(model) -> AnnyRig:
     parents = [int(p) for p in am.bone_parents]
     if any(p >= i for i, p in enumerate(parents)):
         raise RuntimeError("Anny's bones are not in topological order")
-    gen = torch.Generator().manual_seed(0)
-    pheno = torch.rand(600, len(am.phenotype_labels), generator=gen, dtype=torch.float64)
-    with torch.no_grad():
-        coeffs = am.get_phenotype_blendshape_coefficients(
-            **{k: pheno[:, i] for i, k in enumerate(am.phenotype_labels)}
-        )
-        mean = am.get_rest_vertices(coeffs).mean(0).numpy() @ ANNY_TO_WORLD.T
+    mean = anny_mean_body(am)
     faces = am.faces.numpy().astype(np.int64)
     tri, bary = barycentric_embedding(mean, faces, model.template.detach().cpu().numpy().astype(np.float64))
     idx = am.vertex_bone_indices.numpy()
