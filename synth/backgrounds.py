@@ -126,12 +126,18 @@ def procedural_sky(width: int, rng: np.random.Generator) -> tuple[np.ndarray, di
     ground = np.array([rng.uniform(0.15, 0.45), rng.uniform(0.15, 0.4), rng.uniform(0.1, 0.35)])
     sun_strength = rng.uniform(20.0, 80.0)
     f32 = np.float32
-    up = np.sqrt(np.clip(d[..., 1:2], 0.0, 1.0))
+    # Rows run from the zenith down, so the sky is the first `n_sky` rows and the ground the rest;
+    # only the sky rows are evaluated (the same arithmetic per texel as a full-map evaluation).
+    n_sky = int((d[:, 0, 1] >= 0).sum())
+    ds = d[:n_sky]
+    up = np.sqrt(np.clip(ds[..., 1:2], 0.0, 1.0))
     sky = horizon.astype(f32) + (zenith - horizon).astype(f32) * up
-    cos_sun = np.clip(d @ sun.astype(f32), -1.0, 1.0)[..., None]
+    cos_sun = np.clip(ds @ sun.astype(f32), -1.0, 1.0)[..., None]
     glow = f32(sun_strength) * (cos_sun > math.cos(math.radians(2.5))) + f32(0.6) * np.exp((cos_sun - 1) * 12)
     sky += np.array([1.0, 0.9, 0.75], f32) * glow
-    env = np.where(d[..., 1:2] >= 0, sky, (ground * (1.0 + 0.2 * sun[1])).astype(f32))
+    env = np.empty(d.shape, f32)
+    env[:n_sky] = sky
+    env[n_sky:] = (ground * (1.0 + 0.2 * sun[1])).astype(f32)
     mean = float(((env @ _LUMA) * theta_w).sum(dtype=np.float64) / (theta_w.sum(dtype=np.float64) * width))
     params = {"sun_elevation_deg": math.degrees(sun_el), "sun_azimuth_deg": math.degrees(sun_az)}
     return (env * f32(MEAN_LUMINANCE / mean)).astype(np.float32), params

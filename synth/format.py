@@ -125,7 +125,7 @@ def encode_png(image: np.ndarray, palette: np.ndarray | None = None) -> bytes:
         img = Image.fromarray(image, mode="L").convert("P")
         img.putpalette(palette.reshape(-1).tolist())
     buf = io.BytesIO()
-    img.save(buf, format="PNG", compress_level=6)
+    img.save(buf, format="PNG", compress_level=1)  # fast (as OpenCV's default); ~25 % larger than 6
     return buf.getvalue()
 
 
@@ -144,7 +144,7 @@ def decode_png(data: bytes, what: str = "png") -> np.ndarray:
 def encode_npy_gz(array: np.ndarray) -> bytes:
     buf = io.BytesIO()
     np.save(buf, np.ascontiguousarray(array), allow_pickle=False)
-    return gzip.compress(buf.getvalue(), compresslevel=6, mtime=0)
+    return gzip.compress(buf.getvalue(), compresslevel=1, mtime=0)  # fast; ~10 % larger than 6
 
 
 def decode_npy_gz(data: bytes, what: str = "npy.gz") -> np.ndarray:
@@ -152,6 +152,9 @@ def decode_npy_gz(data: bytes, what: str = "npy.gz") -> np.ndarray:
         return np.load(io.BytesIO(gzip.decompress(data)), allow_pickle=False)
     except Exception as exc:
         raise ValueError(f"{what}: not a readable gzipped .npy ({exc})") from None
+
+
+_SHM = "/dev/shm"
 
 
 def encode_exr(depth: np.ndarray) -> bytes:
@@ -166,7 +169,8 @@ def encode_exr(depth: np.ndarray) -> bytes:
     spec.attribute("compression", "zip")
     # OpenImageIO stamps the current time otherwise; a fixed one keeps shards byte-reproducible.
     spec.attribute("DateTime", "1970:01:01 00:00:00")
-    fd, tmp = tempfile.mkstemp(suffix=".exr")
+    # OpenImageIO's Python API writes files only: a temporary one, in memory (/dev/shm) where there is one.
+    fd, tmp = tempfile.mkstemp(suffix=".exr", dir=_SHM if os.access(_SHM, os.W_OK) else None)
     os.close(fd)
     try:
         out = oiio.ImageOutput.create(tmp)

@@ -140,8 +140,8 @@ def person_labels(
         sel = person == i
         bones[sel] = p["face_bones"][frame.face[sel]] + 1
     parts = np.where(hit, bone_to_part[np.maximum(bones.astype(np.int64) - 1, 0)] + 1, 0).astype(np.uint8)
-    cam_pos = frame.position.reshape(-1, 3).astype(np.float64) @ camera.R.T + camera.t
-    depth = np.where(hit, cam_pos[:, 2].reshape(h, w), 0.0).astype(np.float32)
+    depth = np.zeros((h, w), np.float32)
+    depth[hit] = (frame.position[hit].astype(np.float64) @ camera.R[2] + camera.t[2]).astype(np.float32)
     corr = np.zeros((h, w, 3), np.float32)
     corr[..., 0] = np.where(hit, frame.face, -1)
     corr[..., 1:] = np.where(hit[..., None], bary[..., 1:], 0.0)
@@ -171,9 +171,14 @@ def person_labels(
             box = [int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1]
         else:
             box = None
-        vc = np.asarray(p["vertices"], np.float64) @ camera.R.T + camera.t
-        vis_v = vc[:, 2] > 1e-6
-        pv = camera.project(np.asarray(p["vertices"], np.float64)[vis_v])
+        # The box of the projected mesh: from its hull points ("outline", see
+        # synth.camera.outline_index) when all of them are in front of the camera (then the whole
+        # mesh is, and the extremes are the same); otherwise from every vertex in front.
+        pts = np.asarray(p.get("outline", p["vertices"]), np.float64)
+        if (pts @ camera.R.T + camera.t)[:, 2].min() <= 1e-6:
+            pts = np.asarray(p["vertices"], np.float64)
+        vis_v = (pts @ camera.R.T + camera.t)[:, 2] > 1e-6
+        pv = camera.project(pts[vis_v])
         box_full = [float(pv[:, 0].min()), float(pv[:, 1].min()), float(pv[:, 0].max()), float(pv[:, 1].max())]
         out_people.append(
             {

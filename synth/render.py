@@ -36,25 +36,46 @@ class RenderMesh:
         split_vertex: (S,) original vertex of every render vertex.
         split_faces: (F, 3) faces over the render vertices (same order as ``faces``).
         texcoords: (S, 2) Mitsuba UVs (v down: ``1 - v`` of the mesh's v-up UVs).
+        incidence: (V, F) sparse vertex-face incidence: summing face normals onto vertices is one
+            sparse product (about 3x faster per frame than ``np.add.at``).
     """
 
     faces: np.ndarray
     split_vertex: np.ndarray
     split_faces: np.ndarray
     texcoords: np.ndarray
+    incidence: Any = None
 
     @staticmethod
     def build(faces: np.ndarray, uv: np.ndarray, faces_uv: np.ndarray) -> RenderMesh:
+        import scipy.sparse as sp
+
         pairs = np.stack([faces.reshape(-1), faces_uv.reshape(-1)], axis=1)
         uniq, inverse = np.unique(pairs, axis=0, return_inverse=True)
         tc = uv[uniq[:, 1]].astype(np.float32)
         tc[:, 1] = 1.0 - tc[:, 1]
+        faces = np.asarray(faces, dtype=np.int64)
+        nf, nv = len(faces), int(faces.max()) + 1
+        inc = sp.csr_matrix(
+            (np.ones(3 * nf, np.float32), (faces.reshape(-1), np.repeat(np.arange(nf), 3))), shape=(nv, nf)
+        )
         return RenderMesh(
-            faces=np.asarray(faces, dtype=np.int64),
+            faces=faces,
             split_vertex=uniq[:, 0],
             split_faces=inverse.reshape(-1, 3).astype(np.uint32),
             texcoords=tc,
+            incidence=inc,
         )
+
+    def vertex_normals(self, vertices: np.ndarray) -> np.ndarray:
+        """(V, 3) float32 area-weighted unit vertex normals of the posed mesh (as
+        :func:`blsm.mesh.vertex_normals`)."""
+        v = np.asarray(vertices, np.float32)
+        if self.incidence is None or self.incidence.shape[0] != len(v):
+            return vertex_normals(v, self.faces)
+        tri = v[self.faces]
+        vn = self.incidence @ np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        return (vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)).astype(np.float32)
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -93,8 +114,16 @@ class PeopleRenderer:
         variant: str | None = None,
         max_depth: int = 4,
         backplate: bool = False,
+        instanced: bool = True,
     ) -> None:
+        """Load the scene.
+
+        Args:
+            instanced: each person mesh in a shape group seen through an instance (the default;
+                see below); False puts the meshes directly in the scene (benchmarks compare both).
+        """
         self.variant = _resolve_variant(variant)
+        self.instanced = instanced
         mi = self.mi = _mitsuba(self.variant)
         self.width, self.height = width, height
         self.meshes = meshes
@@ -160,11 +189,28 @@ class PeopleRenderer:
             p["faces"] = mi.UInt32(m.split_faces.reshape(-1))
             p["vertex_texcoords"] = mi.Float(m.texcoords.reshape(-1))
             p.update()
-            scene[f"person_{i}"] = mesh
+            # Each person is a shape group seen through one identity instance. Embree then gives
+            # the person its own BVH, which the group rebuilds after each vertex update at Embree's
+            # default quality instead of the scene's RTC_BUILD_QUALITY_HIGH: about 5 ms instead of
+            # 44 ms for a 26.7k-triangle person on one thread, for some 6-15 % more render time
+            # (`make bench` measures both). Labels are the same; the image differs in a few pixels
+            # where a light path took another turn (Monte Carlo noise; tests/synth/test_render.py).
+            if instanced:
+                scene[f"group_{i}"] = {"type": "shapegroup", f"person_{i}": mesh}
+                scene[f"instance_{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{i}"}}
+            else:
+                scene[f"person_{i}"] = mesh
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         self.label_integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth,pos:position,pi:prim_index"})
+        # A second, unused emitter instance. With a single emitter alive in the process, Dr.Jit
+        # devirtualises the emitter calls and inlines the environment map into the path tracer's
+        # kernel at every call site, which made that kernel 20-25 % slower here (measured on
+        # LLVM, 2026-11-24; the rendered image is bit-identical either way). `make bench`
+        # reports the bare render with and without it.
+        self.spare_emitter = mi.load_dict({"type": "constant"})
         self._warm = False
+        self._textures: dict[int, np.ndarray] = {}  # the texture array each slot shows now
 
     def render(
         self,
@@ -204,6 +250,8 @@ class PeopleRenderer:
         # sample the scene rendered before (the label pass never differed). Labels are therefore
         # a function of (seed, index); the RGB is, up to such a pixel.
         for _ in range(1 if self._warm else 2):
+            if not self._warm:
+                self._textures.clear()  # both warm-up assignments upload everything
             self._assign(vertices, textures, camera, env, env_rotation, env_scale)
         self._warm = True
         sensors = self.scene.sensors()
@@ -232,10 +280,13 @@ class PeopleRenderer:
             return dr.opaque(mi.Float, float(x))
 
         for i, (m, v, tex) in enumerate(zip(self.meshes, vertices, textures)):
-            normals = vertex_normals(np.asarray(v, np.float32), m.faces)
-            p[f"person_{i}.vertex_positions"] = mi.Float(np.ascontiguousarray(v[m.split_vertex]).reshape(-1))
-            p[f"person_{i}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
-            p[f"person_{i}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))
+            normals = m.vertex_normals(v)
+            key = f"group_{i}.person_{i}" if self.instanced else f"person_{i}"
+            p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(v[m.split_vertex]).reshape(-1))
+            p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
+            if self._textures.get(i) is not tex:  # uploading 1024^2 texels costs ~3 ms
+                p[f"{key}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))
+                self._textures[i] = tex
         p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
         p["env.scale"] = opaque(env_scale)
         c, s = math.cos(env_rotation), math.sin(env_rotation)

@@ -221,6 +221,17 @@ def rig_subject(
     )
 
 
+def model_fingerprint(model: BLSM) -> str:
+    """SHA-256 (hex) of a model's arrays and metadata: what a registration's parameters refer to."""
+    import hashlib
+
+    h = hashlib.sha256(json.dumps(model.meta, sort_keys=True, default=str).encode())
+    for name, t in sorted(model.named_buffers()):
+        h.update(name.encode())
+        h.update(np.ascontiguousarray(t.detach().cpu().numpy()).tobytes())
+    return h.hexdigest()
+
+
 def check_registration(model: BLSM, reg: dict[str, np.ndarray], where: str) -> None:
     """Raise ValueError naming ``where`` if a registration does not fit the model."""
     sizes = {

@@ -142,8 +142,13 @@ def test_validate_catches_a_damaged_shard_and_exits_nonzero(tiny, tmp_path):
 def test_sigkill_then_resume_gives_the_same_dataset(tiny, tmp_path):
     """A run killed with SIGKILL part-way and resumed equals the uninterrupted run, byte for byte
     on this dataset (labels always; the RGB can differ in a rare pixel, see README)."""
+    # One image per shard, so that the kill lands between shards however fast images are made.
+    ref = tmp_path / "uninterrupted"
+    ref.mkdir()
+    _copy_subjects(tiny, ref)
+    generate(dataclasses.replace(TINY, output=OutputConfig(shard_size=1)), ref, progress=False)
     cfg = tmp_path / "tiny.yaml"
-    cfg.write_text(TINY_YAML)
+    cfg.write_text(TINY_YAML.replace("output: {shard_size: 3}", "output: {shard_size: 1}"))
     out = tmp_path / "killed"
     out.mkdir()
     _copy_subjects(tiny, out)
@@ -151,23 +156,24 @@ def test_sigkill_then_resume_gives_the_same_dataset(tiny, tmp_path):
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
     while not (out / "shard-000000.tar").exists() and time.time() < deadline and proc.poll() is None:
-        time.sleep(0.2)
+        time.sleep(0.01)
     assert proc.poll() is None, "the run ended before it could be killed"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    assert not (out / "shard-000001.tar").exists()
+    names = [f"shard-{i:06d}.tar" for i in range(TINY.num)]
+    assert not all((out / n).exists() for n in names)
     man = json.loads((out / "manifest.json").read_text())
     assert not man["complete"]
     r = subprocess.run(cmd + ["--resume"], cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    for name in ("shard-000000.tar", "shard-000001.tar"):
-        a, b = read_shard(out / name), read_shard(tiny / name)
+    for name in names:
+        a, b = read_shard(out / name), read_shard(ref / name)
         assert a.keys() == b.keys()
         differ = [f"{k}.{f}" for k in a for f in a[k] if a[k][f] != b[k][f]]
         assert not differ, f"{name}: members differ: {differ}"
-    assert _shard_digests(out) == _shard_digests(tiny)
-    for name in ("shard-000000.tar", "shard-000001.tar"):
-        assert (out / name).read_bytes() == (tiny / name).read_bytes()
+    assert _shard_digests(out) == _shard_digests(ref)
+    for name in names:
+        assert (out / name).read_bytes() == (ref / name).read_bytes()
 
 
 def test_two_workers_make_the_same_bytes_as_one(tiny, tmp_path):
@@ -269,6 +275,19 @@ def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tiny, tmp_path
     r = _cli(["generate", str(cfg3), "--out", str(out3)])
     assert r.returncode == 2 and f"{p}: vertices has NaN or inf" in r.stderr, r.stderr
     assert not list(out3.glob("shard-*.tar"))
+
+    # Subjects made with another seed (or model, or texture size) are not silently reused: a
+    # resumed run would otherwise not be the dataset an uninterrupted run makes.
+    out4 = tmp_path / "o4"
+    out4.mkdir()
+    _copy_subjects(tiny, out4)
+    cfg4 = tmp_path / "c4.yaml"
+    cfg4.write_text(TINY_YAML.replace("seed: 7", "seed: 8"))
+    r = _cli(["generate", str(cfg4), "--out", str(out4)])
+    p4 = out4 / "subjects" / "anny_0000.npz"
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert f"{p4}: subject made with other settings (seed differs)" in r.stderr, r.stderr
+    assert not list(out4.glob("shard-*.tar"))
 
 
 def test_subdivision_keeps_each_child_inside_its_parent():
