@@ -194,7 +194,7 @@ class PeopleRenderer:
             # default quality instead of the scene's RTC_BUILD_QUALITY_HIGH: about 5 ms instead of
             # 44 ms for a 26.7k-triangle person on one thread, for some 6-15 % more render time
             # (`make bench` measures both). Labels are the same; the image differs in a few pixels
-            # where a light path took another turn (Monte Carlo noise; tests/synth/test_render.py).
+            # where a light path took another turn (Monte Carlo noise; tests/synth/test_people_renderer.py).
             if instanced:
                 scene[f"group_{i}"] = {"type": "shapegroup", f"person_{i}": mesh}
                 scene[f"instance_{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{i}"}}
