@@ -191,10 +191,11 @@ class PeopleRenderer:
             p.update()
             # Each person is a shape group seen through one identity instance. Embree then gives
             # the person its own BVH, which the group rebuilds after each vertex update at Embree's
-            # default quality instead of the scene's RTC_BUILD_QUALITY_HIGH: about 5 ms instead of
-            # 44 ms for a 26.7k-triangle person on one thread, for some 6-15 % more render time
-            # (`make bench` measures both). Labels are the same; the image differs in a few pixels
-            # where a light path took another turn (Monte Carlo noise; tests/synth/test_people_renderer.py).
+            # default quality instead of the scene's RTC_BUILD_QUALITY_HIGH. `make bench` measured
+            # the per-image scene update at 16 ms instead of 29 ms (2 threads; 14 against 44-48 ms
+            # on one) for a render about 10 % slower. Labels are the same; the image differs in a
+            # few pixels where a light path took another turn (Monte Carlo noise;
+            # tests/synth/test_people_renderer.py).
             if instanced:
                 scene[f"group_{i}"] = {"type": "shapegroup", f"person_{i}": mesh}
                 scene[f"instance_{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{i}"}}

@@ -177,6 +177,22 @@ def load_registrations(
     )
 
 
+def spread_over_subjects(subjects: list[str], n: int) -> list[int]:
+    """Indices of up to ``n`` registrations taken round-robin over the subjects (sorted): every
+    subject's first registration, then every subject's second, and so on. A subset that covers as
+    many subjects as it can, where the first ``n`` in file order may hold only a few subjects."""
+    by_subject: dict[str, list[int]] = {}
+    for i, s in enumerate(subjects):
+        by_subject.setdefault(s, []).append(i)
+    order = sorted(by_subject, key=_natural)
+    out: list[int] = []
+    for r in range(max((len(v) for v in by_subject.values()), default=0)):
+        for s in order:
+            if r < len(by_subject[s]) and len(out) < n:
+                out.append(by_subject[s][r])
+    return sorted(out)
+
+
 def _natural(s: str) -> tuple:
     return (0, int(s), "") if s.isdigit() else (1, 0, s)
 
@@ -558,6 +574,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--lm-iterations", type=int, default=25, help="Levenberg-Marquardt polish steps")
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--max-registrations", type=int, default=0, help="0 = all")
+    ap.add_argument("--spread", action="store_true",
+                    help="with --max-registrations: take them round-robin over the subjects, not the first N")
     ap.add_argument("--no-pose", action="store_true", help="skip pose generalisation")
     ap.add_argument("--targets", default="registrations", choices=("registrations", "ground-truth"),
                     help="fit the registrations, or the true bodies they register (needs gt_points)")
@@ -574,7 +592,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.split != "all":
             regs = regs.split(args.split)
         if args.max_registrations > 0:
-            regs = regs.select(list(range(min(args.max_registrations, regs.vertices.shape[0]))))
+            n = min(args.max_registrations, regs.vertices.shape[0])
+            regs = regs.select(spread_over_subjects(list(regs.subjects), n) if args.spread else list(range(n)))
         models: dict[str, Fittable] = {"BLSM-linear": BLSMFittable(model)}
         if args.baseline:
             models["SMPL-reimpl"] = SMPLReimplFittable(load_smpl_reimpl(args.baseline, model))

@@ -17,6 +17,7 @@ from blsm.learn.evaluate import (
     line_plot,
     load_registrations,
     main,
+    spread_over_subjects,
     write_report,
 )
 from blsm.learn.fit import BLSMFittable, FitConfig
@@ -178,3 +179,18 @@ def test_main_fits_other_models_alongside(model, tmp_path, gen):
     data = json.loads(out.with_suffix(".json").read_text())
     assert set(data["shape"]) == {"BLSM-linear", "other"} and data["info"]["targets"] == "ground-truth"
     assert main([*args, "--also", "no-equals-sign"]) == 2
+
+
+def test_spread_takes_registrations_round_robin_over_subjects(model, tmp_path, gen):
+    """The first N registrations in file order can hold a few subjects only; --spread takes every
+    subject's first registration before any subject's second."""
+    assert spread_over_subjects(["s2", "s2", "s10", "s1", "s1", "s1"], 4) == [0, 2, 3, 4]
+    assert spread_over_subjects(["a", "a", "b"], 10) == [0, 1, 2]
+    assert spread_over_subjects([], 3) == []
+    _write_regs(model, tmp_path / "regs", gen, subjects=3, poses=2)
+    base = ["--registrations", str(tmp_path / "regs"), "--split", "all", "--ks", "2", "--iterations",
+            "5,5,5,5", "--lm-iterations", "1", "--no-pose", "--max-registrations", "3"]
+    for flag, subjects in (([], 2), (["--spread"], 3)):
+        out = tmp_path / f"eval{len(flag)}.md"
+        assert main([*base, *flag, "--out", str(out)]) == 0
+        assert json.loads(out.with_suffix(".json").read_text())["info"]["subjects"] == subjects
