@@ -293,20 +293,20 @@ class SampleMaker:
                 p["vertices"] = 0.5 * (p["vertices"][par[:, 0]] + p["vertices"][par[:, 1]])
             p.update(subject=s.id, si=si, motion=motion, rig=rig)
             people.append(p)
+        # The hull vertices of each posed mesh: footprints, framing and full boxes only need the
+        # extremes, which these hold (synth.camera.outline_index).
+        hulls = [outline_index(p["vertices"]) for p in people]
         foot = []
-        for p in people:
-            # The hull vertices of the posed mesh: footprints, framing and full boxes only need the
-            # extremes, which these hold (synth.camera.outline_index).
-            p["outline_index"] = outline_index(p["vertices"])
-            xz = p["vertices"][p["outline_index"]][:, [0, 2]]
+        for p, idx in zip(people, hulls):
+            xz = p["vertices"][idx][:, [0, 2]]
             c = 0.5 * (xz.min(0) + xz.max(0))
             foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
-        for p, d in zip(people, place_people(foot, cfg.people.gap, rng)):
-            d = d - np.array([0.0, p["vertices"][p["outline_index"], 1].min(), 0.0])  # feet on the floor y = 0
+        for p, idx, d in zip(people, hulls, place_people(foot, cfg.people.gap, rng)):
+            d = d - np.array([0.0, p["vertices"][idx, 1].min(), 0.0])  # feet on the floor y = 0
             for k in ("vertices", "keypoints", "joints"):
                 p[k] = (p[k] + d).astype(np.float32)
             p["transl"] = (p["transl"] + d).astype(np.float32)
-            p["outline"] = p["vertices"][p.pop("outline_index")]
+            p["outline"] = p["vertices"][idx]
         camera, cam_info = sample_camera(np.concatenate([p["outline"] for p in people]), cfg.camera, rng)
         back = self.background(rng)
         rigs = [p["rig"] for p in people]

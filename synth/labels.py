@@ -175,10 +175,11 @@ def person_labels(
         # synth.camera.outline_index) when all of them are in front of the camera (then the whole
         # mesh is, and the extremes are the same); otherwise from every vertex in front.
         pts = np.asarray(p.get("outline", p["vertices"]), np.float64)
-        if (pts @ camera.R.T + camera.t)[:, 2].min() <= 1e-6:
+        z = camera.world_to_camera(pts)[:, 2]
+        if z.min() <= 1e-6:
             pts = np.asarray(p["vertices"], np.float64)
-        vis_v = (pts @ camera.R.T + camera.t)[:, 2] > 1e-6
-        pv = camera.project(pts[vis_v])
+            z = camera.world_to_camera(pts)[:, 2]
+        pv = camera.project(pts[z > 1e-6])
         box_full = [float(pv[:, 0].min()), float(pv[:, 1].min()), float(pv[:, 0].max()), float(pv[:, 1].max())]
         out_people.append(
             {
