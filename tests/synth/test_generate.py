@@ -155,7 +155,9 @@ def test_sigkill_then_resume_gives_the_same_dataset(tiny, tmp_path):
     cmd = [sys.executable, "-m", "synth.cli", "generate", str(cfg), "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 300
-    while not (out / "shard-000000.tar").exists() and time.time() < deadline and proc.poll() is None:
+    # The manifest is rewritten after each shard; waiting for it (not for the first tar) kills the
+    # run after a shard and its manifest entry exist.
+    while not (out / "manifest.json").exists() and time.time() < deadline and proc.poll() is None:
         time.sleep(0.01)
     assert proc.poll() is None, "the run ended before it could be killed"
     os.kill(proc.pid, signal.SIGKILL)
