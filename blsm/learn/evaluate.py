@@ -177,17 +177,25 @@ def load_registrations(
     )
 
 
-def spread_over_subjects(subjects: list[str], n: int) -> list[int]:
-    """Indices of up to ``n`` registrations taken round-robin over the subjects (sorted): every
-    subject's first registration, then every subject's second, and so on. A subset that covers as
-    many subjects as it can, where the first ``n`` in file order may hold only a few subjects."""
+def spread_over_subjects(subjects: list[str], n: int, sequences: int = 0) -> list[int]:
+    """Indices of up to ``n`` registrations that cover as many subjects as they can.
+
+    First every registration of the first ``sequences`` subjects (sorted) that have more than one,
+    so that shape can be fitted on one frame and pose on the others (Fig. 5.7 right); then the rest
+    of the budget round-robin over the other subjects: every subject's first registration, then
+    every subject's second, and so on. The first ``n`` in file order may hold only a few subjects.
+    """
     by_subject: dict[str, list[int]] = {}
     for i, s in enumerate(subjects):
         by_subject.setdefault(s, []).append(i)
     order = sorted(by_subject, key=_natural)
     out: list[int] = []
-    for r in range(max((len(v) for v in by_subject.values()), default=0)):
-        for s in order:
+    whole = [s for s in order if len(by_subject[s]) > 1][:max(sequences, 0)]
+    for s in whole:
+        out += by_subject[s][:max(n - len(out), 0)]
+    rest = [s for s in order if s not in whole]
+    for r in range(max((len(by_subject[s]) for s in rest), default=0)):
+        for s in rest:
             if r < len(by_subject[s]) and len(out) < n:
                 out.append(by_subject[s][r])
     return sorted(out)

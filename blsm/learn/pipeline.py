@@ -104,7 +104,11 @@ class EvaluationConfig:
     Attributes:
         enabled: run it.
         coeffs: numbers of shape coefficients compared (Fig. 5.6).
-        max_test: at most this many held-out registrations are fitted (0: all).
+        max_test: at most this many held-out registrations are fitted (0: all), chosen by
+            :func:`blsm.learn.evaluate.spread_over_subjects`: all frames of ``sequences`` posed
+            subjects, then round-robin over the other subjects.
+        sequences: held-out subjects with posed scans whose every registration is kept (for pose
+            generalisation).
         max_train_subjects: SMPL-reimpl is trained on the registrations of at most this many
             training subjects (its per-registration pose fits are the slow part; 0: all).
         iterations, lm_iterations: the staged fit (:class:`blsm.learn.fit.FitConfig`).
@@ -116,6 +120,7 @@ class EvaluationConfig:
     enabled: bool = True
     coeffs: tuple[int, ...] = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
     max_test: int = 50
+    sequences: int = 2
     max_train_subjects: int = 200
     iterations: tuple[int, ...] = (100, 100, 100, 300)
     lm_iterations: int = 25
@@ -368,7 +373,7 @@ def evaluation_step(cfg: PipelineConfig, reg_folder: Path, population: Path, out
     """Train SMPL-reimpl on the same training registrations and compare it with the learned BLSM
     on the held-out ones (Sec. 5.5; :mod:`blsm.learn.evaluate`)."""
     import blsm
-    from blsm.learn.evaluate import EvalConfig, evaluate, load_registrations, write_report
+    from blsm.learn.evaluate import EvalConfig, evaluate, load_registrations, spread_over_subjects, write_report
     from blsm.learn.fit import BLSMFittable, FitConfig
     from blsm.learn.smpl_reimpl import SMPLReimplFittable, SMPLTrainConfig, train_smpl_reimpl
 
@@ -383,7 +388,7 @@ def evaluation_step(cfg: PipelineConfig, reg_folder: Path, population: Path, out
         keep = sorted(set(train.subjects))[: e.max_train_subjects]
         train = train.select([i for i, s in enumerate(train.subjects) if s in keep])
     if e.max_test > 0 and test.vertices.shape[0] > e.max_test:
-        test = test.select(list(range(e.max_test)))
+        test = test.select(spread_over_subjects(list(test.subjects), e.max_test, e.sequences))
     fit = FitConfig(iterations=e.iterations, lm_iterations=e.lm_iterations)  # type: ignore[arg-type]
     _log(f"evaluation: training SMPL-reimpl on {train.vertices.shape[0]} registrations of "
          f"{len(set(train.subjects))} subjects")

@@ -187,6 +187,14 @@ def test_spread_takes_registrations_round_robin_over_subjects(model, tmp_path, g
     assert spread_over_subjects(["s2", "s2", "s10", "s1", "s1", "s1"], 4) == [0, 2, 3, 4]
     assert spread_over_subjects(["a", "a", "b"], 10) == [0, 1, 2]
     assert spread_over_subjects([], 3) == []
+    # sequences: all frames of the first subjects with several, then round-robin over the others
+    subjects = ["s1", "s2", "s2", "s2", "s3", "s4", "s4", "s5"]
+    assert spread_over_subjects(subjects, 6, sequences=1) == [0, 1, 2, 3, 4, 5]  # s2 whole, s1 s3 s4
+    picked = [subjects[i] for i in spread_over_subjects(subjects, 7, sequences=1)]
+    assert picked.count("s2") == 3 and picked.count("s4") == 1 and set(picked) == {"s1", "s2", "s3", "s4", "s5"}
+    picked = [subjects[i] for i in spread_over_subjects(subjects, 8, sequences=2)]
+    assert sorted(picked) == sorted(subjects)
+    assert spread_over_subjects(subjects, 2, sequences=1) == [1, 2]  # budget smaller than a sequence
     _write_regs(model, tmp_path / "regs", gen, subjects=3, poses=2)
     base = ["--registrations", str(tmp_path / "regs"), "--split", "all", "--ks", "2", "--iterations",
             "5,5,5,5", "--lm-iterations", "1", "--no-pose", "--max-registrations", "3"]

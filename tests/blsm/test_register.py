@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -209,6 +210,40 @@ def test_edge_terms_zero_at_stage1_mesh(model, gen):
     assert float(ev3) < 1e-12
 
 
+def test_pair_term_point_to_point_and_point_to_plane():
+    n = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    r = torch.tensor([[0.003, 0.004, 0.0], [0.0, 0.002, 0.0]], dtype=torch.float64)  # along, across
+    assert float(R.pair_term(r, None)) == pytest.approx((0.005**2 + 0.002**2) / 2)  # Eq. 5.15
+    assert float(R.pair_term(r, n, 0.0)) == pytest.approx(0.002**2 / 2)  # only the normal part
+    assert float(R.pair_term(r, n, 0.5)) == pytest.approx((0.5 * 0.005**2 + 0.002**2) / 2)
+    with pytest.raises(ValueError, match="normals"):
+        R.pair_term(r, None, 0.0)
+    with pytest.raises(ValueError, match="mnn_tangent_weight"):
+        R.RegisterConfig(mnn_tangent_weight=1.5)
+
+
+def test_refine_starts_from_init(model, gen, selection):
+    """With zero iterations stage 2 returns its initial V_D, and S^ = S^_T + A V_D (Eq. 12)."""
+    scan = synthetic_scan(model, gen, posed=True, selection=selection)
+    data = R._scan_data(scan, selection, "scan")
+    cfg = R.RegisterConfig(stage1_iterations=20, stage1_shape_iterations=0, surface_rounds=0, iterations=0)
+    st1 = R.fit_landmarks(model, torch.as_tensor(data.landmarks[None]), selection, cfg)
+    st1 = dataclasses.replace(st1, shape_offsets=None)
+    init = 0.01 * torch.randn(1, model.num_vertices, 3, generator=gen, dtype=model.template.dtype)
+    v_d, s_hat, _ = R.refine(model, [data], st1, selection, cfg, init=init)
+    torch.testing.assert_close(v_d, init)
+    with torch.no_grad():
+        again = pose(model, model.template + init[0], bone_scales=st1.bone_scales, angles=st1.angles,
+                     global_orient=st1.global_orient, transl=st1.transl).vertices
+    torch.testing.assert_close(s_hat, again, atol=1e-5, rtol=0)
+    energy = R.Stage2Energy(model, [data], st1, selection, cfg)
+    torch.testing.assert_close(energy.displacement(energy.mesh(init)), init, atol=1e-5, rtol=0)
+    at_stage1 = energy.terms(energy.s_t, energy.pairs(energy.s_t, np.random.default_rng(0)))
+    assert float(at_stage1["ev"]) == 0.0 and float(at_stage1["rigid"]) == 0.0  # S^ = S^_T
+    moved = energy.terms(s_hat, energy.pairs(s_hat, np.random.default_rng(0)))
+    assert float(moved["ev"]) > 0 and float(energy.total(moved)) > cfg.lambda_ev * float(moved["ev"])
+
+
 def test_sample_surface_on_triangle():
     rng = np.random.default_rng(0)
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [5, 5, 0]], float)
@@ -225,10 +260,11 @@ def test_sample_surface_on_triangle():
 FAST = dict(stage1_iterations=150, iterations=60, scan_samples=20_000, model_samples=8_000, mnn_refresh=5)
 
 
-def test_register_reduces_error(model, gen, selection):
+@pytest.mark.parametrize("tangent_weight", [1.0, 0.0])
+def test_register_reduces_error(model, gen, selection, tangent_weight):
     scan = synthetic_scan(model, gen, posed=False, selection=selection)
     cfg = R.load_config(R.DEFAULT_CONFIG)
-    cfg = R.RegisterConfig(**{**cfg.__dict__, **FAST})
+    cfg = R.RegisterConfig(**{**cfg.__dict__, **FAST, "mnn_tangent_weight": tangent_weight})
     reg = R.register(model, [scan], cfg, selection=selection, progress=False)[0]
     m = reg.meta
     mean_mm, max_mm = R.correspondence_error(reg, scan.gt_points)
