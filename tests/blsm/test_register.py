@@ -242,6 +242,15 @@ def test_refine_starts_from_init(model, gen, selection):
     assert float(at_stage1["ev"]) == 0.0 and float(at_stage1["rigid"]) == 0.0  # S^ = S^_T
     moved = energy.terms(s_hat, energy.pairs(s_hat, np.random.default_rng(0)))
     assert float(moved["ev"]) > 0 and float(energy.total(moved)) > cfg.lambda_ev * float(moved["ev"])
+    # "sum" normalisation: the same terms times their element counts, over V
+    summed = R.Stage2Energy(model, [data], st1, selection, dataclasses.replace(cfg, normalisation="sum"))
+    pairs = energy.pairs(s_hat, np.random.default_rng(1))
+    m, s = energy.terms(s_hat, pairs), summed.terms(s_hat, pairs)
+    nv = model.num_vertices
+    torch.testing.assert_close(s["mnn"], m["mnn"] * m["pairs"].to(m["mnn"].dtype) / nv)
+    torch.testing.assert_close(s["ev"], m["ev"] * energy.edges.shape[0] / nv)
+    torch.testing.assert_close(s["lm"], m["lm"] * energy.lm_count / nv)
+    torch.testing.assert_close(s["smooth"], m["smooth"])
 
 
 def test_sample_surface_on_triangle():
