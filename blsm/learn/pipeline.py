@@ -128,6 +128,8 @@ class EvaluationConfig:
     out: str = ""
 
     def __post_init__(self) -> None:
+        if self.max_test < 0 or self.sequences < 0:
+            raise ValueError(f"max_test and sequences must be >= 0, got {self.max_test} and {self.sequences}")
         if len(self.iterations) != 4:
             raise ValueError(f"iterations needs the Adam steps of the four stages, got {list(self.iterations)}")
 
