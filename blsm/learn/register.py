@@ -52,6 +52,7 @@ import torch
 from blsm.io import atomic_write, read_npz, read_yaml
 from blsm.joint_limits import unconstrained_from_angles
 from blsm.learn.posing import pose
+from blsm.mesh import vertex_normals
 
 FORMAT = "blsm-registration"
 FORMAT_VERSION = 1
@@ -103,7 +104,7 @@ class RegisterConfig:
             plane, the distance along the scan normal only). Random surface samples are about 1 cm
             apart at 20k samples, so a point-to-point pair also pulls across the surface; measured
             on 18 held-out scans of the default population (``benchmarks/registration_floor.py``):
-            4.23 mm mean error at 1, 4.04 mm at 0. The default stays the thesis' term, with
+            4.23 mm mean error at 1, 4.05 mm at 0. The default stays the thesis' term, with
             which the packaged model was made.
         normalisation: "mean" (every term a mean over its elements, as PyTorch3D's losses) or
             "sum" (sums over elements, divided by the template's vertex count V for readable
@@ -557,7 +558,7 @@ def pose_angles(model, x: torch.Tensor) -> torch.Tensor:
 
 
 def _mnn_pairs(scans, current: np.ndarray, faces: torch.Tensor, cfg: RegisterConfig, rng, dtype,
-               with_normals: bool = False):
+               scan_normals: Sequence[np.ndarray] | None = None):
     """Fresh surface samples and their mutual nearest neighbours (Eq. 5.16) for every scan.
 
     Model samples are kept as (faces (P, 3), barycentrics (P, 3)) on the current meshes
@@ -565,10 +566,9 @@ def _mnn_pairs(scans, current: np.ndarray, faces: torch.Tensor, cfg: RegisterCon
 
     Returns:
         per scan ``(faces, barycentrics, scan points, number of pairs, scan normals)``; the unit
-        normals (P, 3) (interpolated vertex normals of the scan) only ``with_normals``, else None.
+        normals (P, 3) at the scan samples (interpolated from ``scan_normals``, each scan's (N, 3)
+        vertex normals) only when those are given, else None.
     """
-    from blsm.mesh import vertex_normals
-
     faces_np = faces.numpy()
     pairs = []
     for n, sc in enumerate(scans):
@@ -578,10 +578,8 @@ def _mnn_pairs(scans, current: np.ndarray, faces: torch.Tensor, cfg: RegisterCon
         model_pts = (current[n][faces_np[fi_m]] * w_m[..., None]).sum(1)
         im, js = mutual_nearest_neighbours(model_pts, scan_pts)
         nrm = None
-        if with_normals:
-            if sc.normals is None:
-                sc.normals = vertex_normals(sc.vertices, sc.faces)
-            nrm = (sc.normals[sc.faces[fi_s[js]]] * w_s[js][..., None]).sum(1)
+        if scan_normals is not None:
+            nrm = (scan_normals[n][sc.faces[fi_s[js]]] * w_s[js][..., None]).sum(1)
             nrm = torch.as_tensor(nrm / np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12), dtype=dtype)
         pairs.append((
             faces[torch.as_tensor(fi_m[im])],
@@ -697,6 +695,18 @@ def fit_surface(
                       beta.detach(), offs.detach())
 
 
+def fit_stage1(model, scans: Sequence[ScanData], selection: LandmarkSelection,
+               config: RegisterConfig) -> tuple[Stage1, Stage1]:
+    """Stage 1 of B scans: :func:`fit_landmarks` (Eq. 5.13), then :func:`fit_surface`.
+
+    Returns:
+        (the landmark fit, the surface refit that stage 2 starts from).
+    """
+    lms = torch.as_tensor(np.stack([d.landmarks for d in scans]), dtype=model.template.dtype)
+    st1 = fit_landmarks(model, lms, selection, config)
+    return st1, fit_surface(model, scans, st1, selection, config)
+
+
 # ------------------------------------------------------------------------------------------------
 # Stage 2: free-form refinement (Eqs. 5.14-5.25)
 
@@ -707,13 +717,11 @@ class ScanData:
 
     Attributes:
         vertices: (N, 3). faces: (F, 3). landmarks: (L, 3) in the selection's order, NaN = missing.
-        normals: (N, 3) unit vertex normals, or None (computed when a point-to-plane term needs them).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     landmarks: np.ndarray
-    normals: np.ndarray | None = None
 
 
 class Stage2Energy:
@@ -744,6 +752,9 @@ class Stage2Energy:
         is_hand = torch.isin(model.vertex_bones, torch.tensor(hand_ids))
         self.hand_edges = self.edges[is_hand[self.edges[:, 0]] & is_hand[self.edges[:, 1]]]
         self.x_lm, self.lm_mask, self.lm_count = _landmark_targets(scans, self.dtype)
+        # Scan vertex normals, once, for the point-to-plane part of the data term.
+        self.scan_normals = ([vertex_normals(sc.vertices, sc.faces) for sc in scans]
+                             if config.mnn_tangent_weight < 1 else None)
 
     def mesh(self, v_d: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) T-pose displacements V_D -> (B, V, 3) posed S^."""
@@ -756,7 +767,7 @@ class Stage2Energy:
     def pairs(self, s_hat: torch.Tensor, rng: np.random.Generator) -> list[Any]:
         """Fresh samples and MNN pairs (Eq. 5.16) on the meshes ``s_hat`` (B, V, 3), detached."""
         return _mnn_pairs(self.scans, s_hat.detach().numpy(), self.faces, self.cfg, rng, self.dtype,
-                          with_normals=self.cfg.mnn_tangent_weight < 1)
+                          self.scan_normals)
 
     def terms(self, s_hat: torch.Tensor, pairs: list[Any]) -> dict[str, torch.Tensor]:
         """Unweighted terms, each (B,): mnn, lm (Eq. 5.15), smooth (5.21), ev, el (5.22), rigid
@@ -779,11 +790,16 @@ class Stage2Energy:
             ev, el, evh, elh = ev * ne / nv, el * ne / nv, evh * nh / nv, elh * nh / nv
         return {"mnn": e_mnn, "lm": e_lm, "smooth": e_smooth, "ev": ev, "el": el, "rigid": evh + elh, "pairs": counts}
 
+    def weighted(self, terms: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Each energy term of :meth:`terms` times its lambda (``pairs`` left out)."""
+        cfg = self.cfg
+        lam = {"mnn": cfg.lambda_mnn, "lm": cfg.lambda_lm, "smooth": cfg.lambda_smoothness,
+               "ev": cfg.lambda_ev, "el": cfg.lambda_el, "rigid": cfg.lambda_rigid}
+        return {k: w * terms[k] for k, w in lam.items()}
+
     def total(self, terms: dict[str, torch.Tensor]) -> torch.Tensor:
         """(B,) the weighted sum of :meth:`terms` (Eq. 5.14)."""
-        cfg = self.cfg
-        return (cfg.lambda_mnn * terms["mnn"] + cfg.lambda_lm * terms["lm"] + cfg.lambda_smoothness * terms["smooth"]
-                + cfg.lambda_ev * terms["ev"] + cfg.lambda_el * terms["el"] + cfg.lambda_rigid * terms["rigid"])
+        return torch.stack(list(self.weighted(terms).values())).sum(0)
 
 
 def refine(
@@ -928,10 +944,8 @@ def register(
         meta = getattr(s, "meta", None) or {}
         data.append(_scan_data(s, selection, str(meta.get("id", f"scan {n}"))))
     t0 = time.perf_counter()
-    lms = torch.as_tensor(np.stack([d.landmarks for d in data]), dtype=model.template.dtype)
-    st1 = fit_landmarks(model, lms, selection, cfg)
-    st1_lm_rms = st1.landmark_error
-    st1 = fit_surface(model, data, st1, selection, cfg)
+    st1_lm, st1 = fit_stage1(model, data, selection, cfg)
+    st1_lm_rms = st1_lm.landmark_error
     t1 = time.perf_counter()
     if log:
         log(f"stage 1: {len(data)} scans, landmark rms {[round(float(e) * 1000, 2) for e in st1.landmark_error]} mm, "
