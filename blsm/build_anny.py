@@ -154,8 +154,20 @@ def barycentric_embedding(vertices: np.ndarray, faces: np.ndarray, points: np.nd
     return tri, bary
 
 
-def _interp(values: np.ndarray, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-    """Barycentric interpolation of per-vertex values (..., V, C) at embedded points."""
+def barycentric_interpolate(
+    values: np.ndarray, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray
+) -> np.ndarray:
+    """Barycentric interpolation of per-vertex values at points embedded in a mesh.
+
+    Args:
+        values: (..., V, C) per-vertex values (e.g. positions in metres).
+        faces: (F, 3) faces of the mesh the points are embedded in.
+        tri: (P,) face of each point, from :func:`barycentric_embedding`.
+        bary: (P, 3) barycentric coordinates of each point in its face.
+
+    Returns:
+        (..., P, C) the values at the points.
+    """
     corner = faces[tri]  # (P, 3)
     return np.einsum("...pkc,pk->...pc", values[..., corner, :], bary)
 
@@ -228,7 +240,7 @@ def build(
     # 1. Template topology.
     dec_v, dec_f, mirror = symmetric_half_decimation(mean_verts, faces_a, half_faces)
     tri, bary = barycentric_embedding(mean_verts, faces_a, dec_v)
-    bodies = _interp(verts, faces_a, tri, bary)  # (N, V, 3)
+    bodies = barycentric_interpolate(verts, faces_a, tri, bary)  # (N, V, 3)
     bodies = 0.5 * (bodies + bodies[:, mirror] * flip)
     template = bodies.mean(0)
     _log(f"template: {len(dec_v)} vertices, {len(dec_f)} faces (from {len(mean_verts)})")
@@ -237,7 +249,7 @@ def build(
     wa = np.zeros((len(mean_verts), len(labels)))
     np.add.at(wa, (np.arange(len(mean_verts))[:, None], model.vertex_bone_indices.numpy()), model.vertex_bone_weights.numpy())
     wb = np.stack([wa[:, g].sum(1) for g in groups], axis=1)  # (Va, J)
-    weights = _interp(wb, faces_a, tri, bary)
+    weights = barycentric_interpolate(wb, faces_a, tri, bary)
     bone_mirror = [skeleton.BONE_NAMES.index(skeleton.mirror_name(n)) for n in skeleton.BONE_NAMES]
     weights = 0.5 * (weights + weights[mirror][:, bone_mirror])
     weights = np.clip(weights, 0.0, None)

@@ -72,6 +72,7 @@ def _side_azimuth(name: str) -> float:
 
 def cmd_atoms(args: argparse.Namespace) -> int:
     from blsm import render
+    from blsm.camera import auto_camera
 
     model = _load(args.model)
     out_dir = Path(args.out)
@@ -89,7 +90,7 @@ def cmd_atoms(args: argparse.Namespace) -> int:
     w, h = args.tile
     for i, name in enumerate(model.dof_names):
         pair = [_mesh(verts[2 * i], faces), _mesh(verts[2 * i + 1], faces)]
-        cam = render.auto_camera(pair, w, h, azimuth_deg=_side_azimuth(name), elevation_deg=12.0)
+        cam = auto_camera(pair, w, h, azimuth_deg=_side_azimuth(name), elevation_deg=12.0)
         for k in range(2):
             items.append([pair[k]])
             deg = math.degrees(float(model.dof_limits[i, k]))
@@ -120,7 +121,7 @@ def cmd_atoms(args: argparse.Namespace) -> int:
                     mesh = _mesh(model(**{kind: coeff}).vertices[0], faces)
                 group.append(mesh)
                 rows.append((f"{kind}[{c}] {sigma:+.0f} sd{' *' if outside else ''}", [mesh]))
-            cam = render.auto_camera(group, w, h, elevation_deg=8.0)
+            cam = auto_camera(group, w, h, elevation_deg=8.0)
             cams8 += [cam] * 3
     cam_of = {id(item): cam for (_, item), cam in zip(rows, cams8)}
     comps_png = render.render_grid(
@@ -165,6 +166,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from PIL import Image, ImageDraw
 
     from blsm import render
+    from blsm.camera import auto_camera
 
     model = _load(args.model)
     out_dir = Path(args.out)
@@ -180,7 +182,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     tiles = []
     for i in range(args.n):
         mesh = _mesh(out.vertices[i], faces)
-        cam = render.auto_camera([mesh], w, h, elevation_deg=10.0)
+        cam = auto_camera([mesh], w, h, elevation_deg=10.0)
         color = tuple(float(c) for c in rng.uniform(0.35, 0.85, size=3))
         img = render.render_meshes([mesh], cam, colors=[color], spp=args.spp)
         tile = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,14 +31,24 @@ _LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 MEAN_LUMINANCE = 0.4  # environments are scaled to this mean luminance before the exposure draw
 
 
-def list_folder(folder: str | Path, exts: tuple[str, ...], what: str) -> list[Path]:
-    """Sorted files of ``folder`` with one of ``exts``; an error when there is none."""
+def list_folder(
+    folder: str | Path, exts: tuple[str, ...], what: str, only: Sequence[str] = (), exclude: Sequence[str] = ()
+) -> list[Path]:
+    """Sorted files of ``folder`` with one of ``exts``, restricted to the names in ``only`` (when
+    given) and without those in ``exclude``; an error when there is none or a name is not there."""
     folder = Path(folder)
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such {what} folder")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts and p.is_file())
+    names = {p.name for p in files}
+    unknown = [n for n in (*only, *exclude) if n not in names]
+    if unknown:
+        raise ValueError(f"{folder}: no {what} file named {unknown[0]!r} (files: {sorted(names)})")
+    if only:
+        files = [p for p in files if p.name in only]
+    files = [p for p in files if p.name not in exclude]
     if not files:
-        raise ValueError(f"{folder}: the {what} folder holds no {'/'.join(exts)} files")
+        raise ValueError(f"{folder}: the {what} folder holds no {'/'.join(exts)} files (after files/exclude)")
     return files
 
 

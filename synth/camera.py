@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from blsm.render import Camera, look_at_camera
+from blsm.camera import Camera, look_at_camera
 
 SENSOR_WIDTH_MM = 36.0
 

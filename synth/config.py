@@ -53,18 +53,24 @@ class SubjectsConfig:
 class PosesConfig:
     """Where poses come from: ``prior`` (the pose prior; ``prior`` file, empty for the packaged
     one), ``library`` (frames of the clips in the motion library folder ``library``), or ``mix``
-    (the library with probability ``library_rate``, else the prior)."""
+    (the library with probability ``library_rate``, else the prior). ``clips`` keeps only the named
+    clips of the library (empty: all) and ``exclude_clips`` leaves the named ones out, so that a test
+    set can use motions held out of training (e.g. the clips held out of the packaged prior)."""
 
     source: str = "prior"
     prior: str = ""
     library: str = ""
     library_rate: float = 0.5
+    clips: tuple[str, ...] = ()
+    exclude_clips: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.source not in ("prior", "library", "mix"):
             raise ValueError(f"poses.source must be prior, library or mix, got {self.source!r}")
         if self.source != "prior" and not self.library:
             raise ValueError(f"poses.library (a motion library folder) is needed with source: {self.source}")
+        if (self.clips or self.exclude_clips) and self.source == "prior":
+            raise ValueError("poses.clips and poses.exclude_clips need source: library or mix")
         if not 0.0 <= self.library_rate <= 1.0:
             raise ValueError(f"poses.library_rate must be in [0, 1], got {self.library_rate}")
 
@@ -88,10 +94,14 @@ class PeopleConfig:
 @dataclass(frozen=True)
 class BackgroundConfig:
     """Backgrounds (:mod:`synth.backgrounds`): ``default`` (embedded procedural sky), ``hdri`` or
-    ``images`` (a ``folder``); exposure in stops, drawn uniformly; environment width in texels."""
+    ``images`` (a ``folder``); exposure in stops, drawn uniformly; environment width in texels.
+    ``files`` keeps only the named files of the folder (empty: all) and ``exclude`` leaves the named
+    ones out, so that train and test sets can hold out backgrounds of one folder."""
 
     kind: str = "default"
     folder: str = ""
+    files: tuple[str, ...] = ()
+    exclude: tuple[str, ...] = ()
     exposure_ev: tuple[float, float] = (-0.5, 0.5)
     env_width: int = 512
 
@@ -102,6 +112,8 @@ class BackgroundConfig:
             raise ValueError(f"background.folder is needed with kind: {self.kind}")
         if not self.exposure_ev[0] <= self.exposure_ev[1]:
             raise ValueError(f"background.exposure_ev must be [low, high], got {list(self.exposure_ev)}")
+        if (self.files or self.exclude) and self.kind == "default":
+            raise ValueError("background.files and background.exclude need kind: hdri or images")
         if not 64 <= self.env_width <= 8192:
             raise ValueError(f"background.env_width must be in [64, 8192], got {self.env_width}")
 

@@ -25,13 +25,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from blsm import mitsuba_util
+from blsm.color import linear_to_srgb, srgb_to_linear
 from blsm.io import sha256_file
 from synth import backgrounds as bg
 from synth import format as fmt
 from synth import labels as lab
 from synth.camera import outline_index, sample_camera
 from synth.config import GeneratorConfig
-from blsm.render import linear_to_srgb, srgb_to_linear
 from synth.render import PeopleRenderer, RenderMesh
 from synth.shards import ShardWriter, SkipSample, sample_rng, shard_name
 from synth.subjects import Subject, anny_subject, load_subject, model_fingerprint, pose_subject, save_subject
@@ -57,12 +58,10 @@ def versions() -> dict[str, str]:
 
 def choose_variant(cfg: GeneratorConfig) -> str:
     """The Mitsuba variant, once per run: the configured one, else cuda where a GPU is, else llvm."""
-    from blsm.render import choose_variant as probe
-
     if cfg.render.variant:
-        return probe((cfg.render.variant,))
+        return mitsuba_util.choose_variant((cfg.render.variant,))
     cands = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb") if shutil.which("nvidia-smi") else ("llvm_ad_rgb", "scalar_rgb")
-    return probe(cands)
+    return mitsuba_util.choose_variant(cands)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -150,8 +149,15 @@ class PoseSource:
             from blsm.mocap.library import list_clips, load_clip
 
             files = list_clips(self.cfg.library)
+            names = {Path(f).stem for f in files}
+            unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips) if n not in names]
+            if unknown:
+                raise ValueError(f"{self.cfg.library}: the motion library has no clip {unknown[0]!r}")
+            if self.cfg.clips:
+                files = [f for f in files if Path(f).stem in self.cfg.clips]
+            files = [f for f in files if Path(f).stem not in self.cfg.exclude_clips]
             if not files:
-                raise ValueError(f"{self.cfg.library}: the motion library holds no clips")
+                raise ValueError(f"{self.cfg.library}: the motion library holds no clips (after clips/exclude_clips)")
             self.clips = [load_clip(f) for f in files]
 
     def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -208,9 +214,9 @@ class SampleMaker:
         b = cfg.background
         self.bg_files = []
         if b.kind == "hdri":
-            self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI")
+            self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
         elif b.kind == "images":
-            self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image")
+            self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, dict[str, Any]] = {}
         self._renderers: dict[tuple, PeopleRenderer] = {}
@@ -500,10 +506,11 @@ def generate(
     todo, done, skipped = writer.pending(resume)
     # Check the pose and background sources before anything is made.
     PoseSource(cfg)
-    if cfg.background.kind == "hdri":
-        bg.list_folder(cfg.background.folder, bg.HDRI_EXT, "HDRI")
-    elif cfg.background.kind == "images":
-        bg.list_folder(cfg.background.folder, bg.IMAGE_EXT, "background image")
+    b = cfg.background
+    if b.kind == "hdri":
+        bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
+    elif b.kind == "images":
+        bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
     variant = choose_variant(cfg)
     prepare_subjects(cfg, out, blsm.load())
     if stop_after is not None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from blsm.render import Camera
+from blsm.camera import Camera
 from synth.render import Frame
 
 SURFACE_TOL = 0.05  # metres

@@ -23,8 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from blsm.camera import Camera
 from blsm.mesh import face_incidence, vertex_normals
-from blsm.render import Camera, _mitsuba, _resolve_variant, _sensor_params, _to_world_matrix
+from blsm.mitsuba_util import load_mitsuba, resolve_variant, sensor_params, to_world_matrix
 
 
 @dataclass(frozen=True)
@@ -105,9 +106,9 @@ class PeopleRenderer:
             instanced: each person mesh in a shape group seen through an instance (the default;
                 see below); False puts the meshes directly in the scene (benchmarks compare both).
         """
-        self.variant = _resolve_variant(variant)
+        self.variant = resolve_variant(variant)
         self.instanced = instanced
-        mi = self.mi = _mitsuba(self.variant)
+        mi = self.mi = load_mitsuba(self.variant)
         self.width, self.height = width, height
         self.meshes = meshes
         self.backplate = backplate
@@ -276,9 +277,9 @@ class PeopleRenderer:
         c, s = math.cos(env_rotation), math.sin(env_rotation)
         rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
         p["env.to_world"] = mi.AffineTransform4f(rot)
-        x_fov, ppx, ppy = _sensor_params(camera)
+        x_fov, ppx, ppy = sensor_params(camera)
         for name in ("sensor", "label_sensor"):
-            p[f"{name}.to_world"] = mi.AffineTransform4f(_to_world_matrix(camera))
+            p[f"{name}.to_world"] = mi.AffineTransform4f(to_world_matrix(camera))
             p[f"{name}.x_fov"] = opaque(x_fov)
             p[f"{name}.principal_point_offset_x"] = opaque(ppx)
             p[f"{name}.principal_point_offset_y"] = opaque(ppy)

@@ -495,7 +495,7 @@ def anny_subject(
         rng: the random generator (phenotype and outfit come from it only).
         texture_size: albedo texture size in texels.
     """
-    from blsm.build_anny import ANNY_TO_WORLD, _interp
+    from blsm.build_anny import ANNY_TO_WORLD, barycentric_interpolate
     from synth import textures
 
     tri, bary = _anny_embedding(model)
@@ -507,7 +507,7 @@ def anny_subject(
         )
         verts = am.get_rest_vertices(coeffs)[0].numpy() @ ANNY_TO_WORLD.T
     faces = am.faces.numpy()
-    target = _interp(verts, faces, tri, bary)
+    target = barycentric_interpolate(verts, faces, tri, bary)
     reg, fit = fit_registration(model, target)
     # Put the scan where the registration is (Anny's origin is not BLSM's).
     uv = am.texture_coordinates.numpy()

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from blsm.render import linear_to_srgb, srgb_to_linear
+from blsm.color import linear_to_srgb, srgb_to_linear
 from synth.raster import rasterise
 
 TOPS = ("tshirt", "longsleeve", "tank")

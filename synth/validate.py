@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
+from blsm.camera import Camera
 from blsm.io import sha256_file
-from blsm.render import Camera
 from synth import format as fmt
 from synth.raster import rasterise
 from synth.shards import MANIFEST, read_shard

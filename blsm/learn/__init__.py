@@ -9,4 +9,5 @@
 - :mod:`blsm.learn.fit`: staged fitting of a model to registrations (Sec. 5.5.2).
 - :mod:`blsm.learn.smpl_reimpl`: the SMPL-type baseline (Sec. 5.5.1).
 - :mod:`blsm.learn.evaluate`: held-out errors against the number of coefficients (Fig. 5.6).
+- :mod:`blsm.learn.registrations`: reading a folder of registrations and picking held-out subsets.
 """

@@ -426,6 +426,7 @@ def render_landmarks(model, path: str | Path, landmarks: list[Landmark] | None =
     from PIL import Image, ImageDraw
 
     from blsm import render
+    from blsm.camera import auto_camera
 
     lms = compute_landmarks(model) if landmarks is None else landmarks
     t = model.template.detach().cpu().numpy().astype(np.float64)
@@ -434,7 +435,7 @@ def render_landmarks(model, path: str | Path, landmarks: list[Landmark] | None =
     w, h = 420, 620
     tiles = []
     for az in (0.0, 90.0, 180.0):
-        cam = render.auto_camera([(t, f)], w, h, azimuth_deg=az, elevation_deg=5.0)
+        cam = auto_camera([(t, f)], w, h, azimuth_deg=az, elevation_deg=5.0)
         img = render.render_meshes([(t, f)], cam, spp=8)
         tile = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
         draw = ImageDraw.Draw(tile)

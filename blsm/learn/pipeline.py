@@ -105,7 +105,7 @@ class EvaluationConfig:
         enabled: run it.
         coeffs: numbers of shape coefficients compared (Fig. 5.6).
         max_test: at most this many held-out registrations are fitted (0: all), chosen by
-            :func:`blsm.learn.evaluate.spread_over_subjects`: all frames of ``sequences`` posed
+            :func:`blsm.learn.registrations.spread_over_subjects`: all frames of ``sequences`` posed
             subjects, then round-robin over the other subjects.
         sequences: held-out subjects with posed scans whose every registration is kept (for pose
             generalisation).
@@ -375,8 +375,9 @@ def evaluation_step(cfg: PipelineConfig, reg_folder: Path, population: Path, out
     """Train SMPL-reimpl on the same training registrations and compare it with the learned BLSM
     on the held-out ones (Sec. 5.5; :mod:`blsm.learn.evaluate`)."""
     import blsm
-    from blsm.learn.evaluate import EvalConfig, evaluate, load_registrations, spread_over_subjects, write_report
+    from blsm.learn.evaluate import EvalConfig, evaluate, write_report
     from blsm.learn.fit import BLSMFittable, FitConfig
+    from blsm.learn.registrations import load_registrations, spread_over_subjects
     from blsm.learn.smpl_reimpl import SMPLReimplFittable, SMPLTrainConfig, train_smpl_reimpl
 
     e = cfg.evaluation

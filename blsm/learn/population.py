@@ -41,7 +41,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from blsm.build_anny import ANNY_TO_WORLD, _interp, anny_bone_groups, anny_mean_body, barycentric_embedding
+from blsm.build_anny import (
+    ANNY_TO_WORLD,
+    anny_bone_groups,
+    anny_mean_body,
+    barycentric_embedding,
+    barycentric_interpolate,
+)
 from blsm.io import atomic_write
 from blsm.learn.posing import pose as blsm_pose
 from blsm.learn.scans import Scan, landmark_names, landmark_points, save_scan
@@ -418,7 +424,7 @@ def _make_scans(
     angles = torch.stack([j[2] for j in jobs])
     orient = torch.stack([j[3] for j in jobs])
     posed = pose_anny(model, rig, bodies, angles, orient)
-    gt = _interp(posed, rig.faces, rig.tri, rig.bary)  # (B, Vb, 3)
+    gt = barycentric_interpolate(posed, rig.faces, rig.tri, rig.bary)  # (B, Vb, 3)
     lm_names = landmark_names()
     lm_gt = landmark_points(torch.as_tensor(gt)).numpy()  # (B, L, 3)
     scans = []
@@ -589,6 +595,7 @@ def render_preview(
     from PIL import Image, ImageDraw
 
     from blsm import render
+    from blsm.camera import auto_camera
     from blsm.learn.scans import load_scan
 
     folder = Path(folder)
@@ -600,7 +607,7 @@ def render_preview(
     for i, rel in enumerate(rels):
         scan = load_scan(folder / rel)
         mesh = (scan.vertices.astype(np.float64), scan.faces.astype(np.int64))
-        cam = render.auto_camera([mesh], w, h, azimuth_deg=-35.0, elevation_deg=-20.0)
+        cam = auto_camera([mesh], w, h, azimuth_deg=-35.0, elevation_deg=-20.0)
         img = render.render_meshes([mesh], cam, spp=8)
         t = Image.fromarray((np.clip(img, 0, 1) * 255).astype(np.uint8))
         draw = ImageDraw.Draw(t)

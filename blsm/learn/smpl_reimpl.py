@@ -431,7 +431,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     import blsm
-    from blsm.learn.evaluate import load_registrations
+    from blsm.learn.registrations import load_registrations
 
     ap = argparse.ArgumentParser(
         prog="blsm train-smpl", description="Train the SMPL-reimpl baseline (Sec. 5.5.1)."

@@ -48,6 +48,7 @@ def add_parser(sub: Any) -> None:
     imp.add_argument("--units", default="auto", choices=["auto", *UNITS], help="BVH length unit")
     imp.add_argument("--workers", type=_positive(int), default=min(2, os.cpu_count() or 1))
     imp.add_argument("--overwrite", action="store_true", help="replace clips already in --out")
+    imp.add_argument("--clips", nargs="+", metavar="NAME", help="import only these clips (file stems)")
     imp.add_argument("--model", help="model .npz (default: the packaged one)")
     imp.add_argument("--iters", type=_positive(int), default=200, help="Adam iterations per solve")
     imp.set_defaults(func=cmd_import)
@@ -158,6 +159,11 @@ def cmd_import(args: argparse.Namespace) -> int:
     files = sorted(src.glob("*.bvh"))
     if not files:
         raise ValueError(f"{src}: no .bvh files")
+    if args.clips:
+        missing = sorted(set(args.clips) - {f.stem for f in files})
+        if missing:
+            raise ValueError(f"{src}: no clip {missing[0]}.bvh")
+        files = [f for f in files if f.stem in args.clips]
     out = Path(args.out)
     targets = [out / f"{f.stem}.npz" for f in files]
     exists = [t for t in targets if t.exists()]

@@ -54,7 +54,8 @@ def render_preview(
     """
     from PIL import Image, ImageDraw, ImageFont
 
-    from blsm.render import look_at_camera, render_meshes, save_png
+    from blsm.camera import look_at_camera
+    from blsm.render import render_meshes, save_png
 
     src_path = Path(bvh) if bvh is not None else Path(clip.meta.get("source", ""))
     if not src_path.is_file():

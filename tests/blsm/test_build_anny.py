@@ -28,14 +28,14 @@ def test_symmetric_half_decimation_gives_a_closed_symmetric_mesh():
 
 def test_barycentric_embedding_reproduces_points_on_the_surface():
     pytest.importorskip("rtree")
-    from blsm.build_anny import _interp, barycentric_embedding
+    from blsm.build_anny import barycentric_embedding, barycentric_interpolate
 
     mesh = trimesh.creation.icosphere(subdivisions=2)
     rng = np.random.default_rng(0)
     w = rng.dirichlet(np.ones(3), size=50)
     pts = np.einsum("pk,pkc->pc", w, mesh.triangles[rng.integers(0, len(mesh.faces), 50)])
     tri, bary = barycentric_embedding(mesh.vertices, mesh.faces, pts)
-    back = _interp(mesh.vertices, mesh.faces, tri, bary)
+    back = barycentric_interpolate(mesh.vertices, mesh.faces, tri, bary)
     assert np.allclose(back, pts, atol=1e-6)
 
 

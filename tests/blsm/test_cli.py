@@ -32,10 +32,10 @@ def test_demo_writes_no_output_on_bad_model(tmp_path):
 
 @pytest.fixture
 def variant():
-    from blsm import render
+    from blsm.mitsuba_util import choose_variant
 
     try:
-        return render.choose_variant()
+        return choose_variant()
     except RuntimeError as exc:
         pytest.skip(f"no Mitsuba variant can run here: {exc}")
 

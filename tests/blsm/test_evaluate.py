@@ -15,12 +15,11 @@ from blsm.learn.evaluate import (
     error_stats,
     evaluate,
     line_plot,
-    load_registrations,
     main,
-    spread_over_subjects,
     write_report,
 )
 from blsm.learn.fit import BLSMFittable, FitConfig
+from blsm.learn.registrations import load_registrations, spread_over_subjects
 from blsm.learn.smpl_reimpl import SMPLReimpl, SMPLReimplFittable, ring_regressor
 
 FIT = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=15)

@@ -1,10 +1,9 @@
-"""Tests for blsm.render (Mitsuba clay renderer and OpenCV cameras)."""
+"""Tests for blsm.render (Mitsuba clay renderer)."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +11,9 @@ import pytest
 import trimesh
 
 from blsm import render
-from blsm.render import Camera, auto_camera, choose_variant, look_at_camera, render_grid, render_meshes
+from blsm.camera import Camera, auto_camera, look_at_camera
+from blsm.mitsuba_util import choose_variant
+from blsm.render import render_grid, render_meshes
 
 W, H = 64, 80
 BG = (1.0, 1.0, 1.0)
@@ -45,33 +46,6 @@ def test_import_does_not_import_mitsuba() -> None:
     root = Path(__file__).resolve().parents[2]
     proc = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
-
-
-def test_project_matches_manual_pinhole() -> None:
-    cam = look_at_camera(eye=(0.4, 1.2, 2.5), target=(0.0, 0.9, 0.0), fov_y_deg=35.0, width=W, height=H)
-    # Principal point convention: centred camera -> (W/2, H/2), target on it.
-    assert cam.K[0, 2] == pytest.approx(W / 2) and cam.K[1, 2] == pytest.approx(H / 2)
-    np.testing.assert_allclose(cam.project(np.array([[0.0, 0.9, 0.0]])), [[W / 2, H / 2]], atol=1e-9)
-    # Focal length from the vertical field of view.
-    assert cam.K[1, 1] == pytest.approx(0.5 * H / np.tan(np.radians(35.0) / 2))
-    assert np.allclose(cam.R @ cam.R.T, np.eye(3)) and np.linalg.det(cam.R) == pytest.approx(1.0)
-    np.testing.assert_allclose(cam.center, [0.4, 1.2, 2.5], atol=1e-12)
-
-    pts = np.random.default_rng(0).normal(size=(20, 3)) * 0.3 + np.array([0.0, 0.9, 0.0])
-    x = (cam.K @ (cam.R @ pts.T + cam.t[:, None])).T
-    np.testing.assert_allclose(cam.project(pts), x[:, :2] / x[:, 2:], rtol=1e-12, atol=1e-9)
-
-    # OpenCV axes: world +Y (up) goes to smaller v; camera at +Z sees world +X on the right.
-    front = look_at_camera(eye=(0, 0, 3), target=(0, 0, 0), width=W, height=H)
-    uv = front.project(np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.2, 0.0]]))
-    assert uv[1, 0] > uv[0, 0] and uv[2, 1] < uv[0, 1]
-
-
-def test_camera_validation() -> None:
-    with pytest.raises(ValueError):
-        look_at_camera(eye=(0, 3, 0), target=(0, 0, 0), up=(0, 1, 0))
-    with pytest.raises(ValueError):
-        Camera(K=np.eye(3), R=np.diag([1.0, 1.0, -1.0]), t=np.zeros(3), width=4, height=4)
 
 
 @pytest.mark.parametrize(
@@ -156,16 +130,6 @@ def test_render_grid_size_and_labels(variant: str, tmp_path: Path) -> None:
                     camera_fn=lambda item: auto_camera(item, tw + 1, th))
 
 
-def test_auto_camera_frames_box() -> None:
-    verts = np.array(trimesh.creation.box(extents=(0.4, 1.7, 0.3)).vertices) + np.array([0.2, 0.9, -0.1])
-    cam = auto_camera([(verts, np.zeros((1, 3), dtype=int))], 96, 128)
-    uv = cam.project(verts)
-    assert (uv[:, 0] > 0).all() and (uv[:, 0] < 96).all()
-    assert (uv[:, 1] > 0).all() and (uv[:, 1] < 128).all()
-    # Tight: the box fills most of the image height.
-    assert uv[:, 1].max() - uv[:, 1].min() > 0.8 * 128
-
-
 def test_save_png_roundtrip(tmp_path: Path) -> None:
     from PIL import Image
 
@@ -176,29 +140,3 @@ def test_save_png_roundtrip(tmp_path: Path) -> None:
     assert arr.shape == (5, 7, 3) and tuple(arr[2, 3]) == (255, 128, 0)
     with pytest.raises(ValueError):
         render.save_png(np.zeros((5, 7, 2)), tmp_path / "bad.png")
-
-
-def test_choose_variant_fallback_warns(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(render.VARIANT_ENV, raising=False)
-    failure = (False, "LLVM ERROR: Cannot select: fminimum")
-    monkeypatch.setitem(render._PROBE_RESULTS, "bogus_variant", failure)
-    monkeypatch.setitem(render._PROBE_RESULTS, "good_variant", (True, ""))
-    monkeypatch.setattr(render, "_CHOSEN_VARIANT", {})
-    with pytest.warns(RuntimeWarning, match=r"bogus_variant.*fminimum.*libllvm19"):
-        assert choose_variant(("bogus_variant", "good_variant")) == "good_variant"
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert choose_variant(("bogus_variant", "good_variant")) == "good_variant"  # cached, silent
-    with pytest.raises(RuntimeError, match="bogus_variant"):
-        choose_variant(("bogus_variant",))
-    # The environment variable forces a variant (still validated).
-    monkeypatch.setenv(render.VARIANT_ENV, "good_variant")
-    assert choose_variant(("bogus_variant",)) == "good_variant"
-    monkeypatch.setenv(render.VARIANT_ENV, "bogus_variant")
-    with pytest.raises(RuntimeError, match=render.VARIANT_ENV):
-        choose_variant()
-
-
-def test_probe_rejects_unknown_variant() -> None:
-    ok, reason = render._probe_variant("not_a_real_variant_rgb", timeout=60)
-    assert not ok and reason

@@ -2,7 +2,7 @@
 
 Each sample holds one or two BLSM people posed at random and seen by an OpenCV camera whose
 principal point is off centre. The labels follow the format exactly: keypoints are the model's,
-projected with :meth:`blsm.render.Camera.project`; the parts map is thick strokes along the bones
+projected with :meth:`blsm.camera.Camera.project`; the parts map is thick strokes along the bones
 (one label per bone's part, left/right the person's own), the mask is where a person's strokes are
 (person 0 in front); the image is the dimmed part colours on grey with a ``DOT`` x ``DOT`` square of
 colour :func:`dot_colour` ``(k)`` centred on the pixel of every in-frame keypoint ``k`` of person 0.
@@ -21,7 +21,7 @@ from PIL import Image, ImageDraw
 
 import blsm
 from blsm import skeleton
-from blsm.render import Camera, look_at_camera
+from blsm.camera import Camera, look_at_camera
 from synth import format as fmt
 from synth.shards import ShardWriter
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from blsm.render import look_at_camera
+from blsm.camera import look_at_camera
 from synth.render import PeopleRenderer, RenderMesh
 
 SIZE = 40
