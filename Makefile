@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions prior clean-venv
+.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-model clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -52,6 +52,15 @@ motions: $(STAMP)
 # Refit the packaged pose prior from out/motions (two clips held out for the tests).
 prior: $(STAMP)
 	$(BIN)/blsm mocap fit-prior out/motions --out blsm/data/pose_prior_cmu.npz --exclude 007_12 005_20
+
+# The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation
+# and the two 10k-image training halves under out/data (about 35 minutes on 2 cores; resumable).
+recovery-data: $(STAMP)
+	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
+	$(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
+	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
+	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/data/train_hdri --workers 2 --resume
+	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
 
 clean-venv:
 	rm -rf $(VENV)

@@ -1,0 +1,104 @@
+"""The ``recovery`` command: train, evaluate, predict, cache, export.
+
+Bad input (a missing or empty dataset, a corrupt checkpoint, one made for another BLSM model file or
+config, an unknown config key) is one line ``recovery: error: PATH: problem`` and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+USAGE = """\
+recovery train CONFIG --out DIR [--resume]        train (configs/recovery/*.yaml; '-' = defaults)
+recovery evaluate CHECKPOINT DATASET --out DIR    metrics.json, sheet.png (CHECKPOINT may be 'default')
+recovery predict CHECKPOINT IMAGE --out DIR [--box X0 Y0 X1 Y1] [--focal F]
+recovery cache DATASET --out DIR [--crop N]       pre-crop a dataset for training (train does it itself)
+recovery export CHECKPOINT --out FILE [--full]    inference-only copy (float16 unless --full)
+"""
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="recovery", description="HMR-BLSM training, evaluation and prediction",
+                                usage=USAGE)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train")
+    t.add_argument("config")
+    t.add_argument("--out", required=True)
+    t.add_argument("--resume", action="store_true", help="continue DIR/last.pt (same config)")
+    e = sub.add_parser("evaluate")
+    e.add_argument("checkpoint")
+    e.add_argument("dataset")
+    e.add_argument("--out", required=True)
+    e.add_argument("--max-people", type=int, default=0, help="at most N people, spread over the set (0: all)")
+    e.add_argument("--batch", type=int, default=32)
+    pr = sub.add_parser("predict")
+    pr.add_argument("checkpoint")
+    pr.add_argument("image")
+    pr.add_argument("--out", required=True)
+    pr.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"))
+    pr.add_argument("--focal", type=float, help="focal length in pixels (default: the image's longer side)")
+    c = sub.add_parser("cache")
+    c.add_argument("dataset")
+    c.add_argument("--out", required=True)
+    c.add_argument("--crop", type=int, default=128)
+    c.add_argument("--context", type=float, default=1.5)
+    x = sub.add_parser("export")
+    x.add_argument("checkpoint")
+    x.add_argument("--out", required=True)
+    x.add_argument("--full", action="store_true", help="keep float32 weights")
+    x.add_argument("--report", help="a metrics.json to embed as the model's summary")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except (ValueError, FloatingPointError) as exc:
+        print(f"recovery: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.cmd == "train":
+        from recovery.config import load_config
+        from recovery.train import train
+
+        status = train(load_config(args.config), args.out, resume=args.resume)
+        return 130 if status == "interrupted" else 0
+    if args.cmd == "evaluate":
+        from recovery.evaluate import evaluate, format_report
+
+        if args.max_people < 0 or args.batch < 1:
+            raise ValueError("--max-people must be >= 0 and --batch >= 1")
+        res = evaluate(args.checkpoint, args.dataset, args.out, batch=args.batch, max_people=args.max_people)
+        print(format_report(res))
+        print(f"wrote {args.out}/metrics.json and {args.out}/sheet.png")
+        return 0
+    if args.cmd == "predict":
+        from recovery.predict import predict
+
+        predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal)
+        print(f"wrote {args.out}/params.json, mesh.obj, overlay.png")
+        return 0
+    if args.cmd == "cache":
+        from recovery.data import build_cache
+
+        build_cache(args.dataset, args.out, args.crop, args.context)
+        return 0
+    if args.cmd == "export":
+        import json
+        from pathlib import Path
+
+        from recovery.predictor import export
+
+        summary = json.loads(Path(args.report).read_text()) if args.report else None
+        path = export(args.checkpoint, args.out, half=not args.full, summary=summary)
+        print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")
+        return 0
+    raise AssertionError(args.cmd)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

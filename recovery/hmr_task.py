@@ -1,0 +1,209 @@
+"""HMR-BLSM's training step, apart from the generic loop (:mod:`recovery.trainer`).
+
+One step: the regressor's forward on the augmented crops, BLSM on its last IEF estimate, the losses
+of :class:`recovery.config.LossConfig`, one AdamW update of the regressor (gradient clipping,
+warm-up then cosine schedule), then, with the discriminator on, one Adam update of the 47-D pose
+discriminator on real poses (:func:`recovery.data.real_poses`) against the detached predictions
+(least squares, HMR Eq. 6). A NaN or infinite loss stops training with the step and the batch's
+sample keys ``(epoch, item, dataset, sample index, person)``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from typing import Any
+
+import torch
+from torch import nn
+
+from blsm.joint_limits import angles_from_unconstrained
+from recovery import losses as L
+from recovery import metrics as M
+from recovery.config import RecoveryConfig
+from recovery.data import RealPoses
+from recovery.joints import PELVIS, indices
+from recovery.models.discriminator import PoseDiscriminator, normalise_angles
+from recovery.models.hmr import HMRBLSM, ParamLayout, body_outputs, predict_body
+
+
+def build_model(cfg: RecoveryConfig, body: nn.Module, init: torch.Tensor | None = None,
+                pretrained: bool | None = None) -> HMRBLSM:
+    """The network of ``cfg.model`` for the BLSM ``body``; ``init`` = Theta_0 (zeros when loading a checkpoint)."""
+    m = cfg.model
+    if m.num_shape > body.num_shape_coeffs:
+        raise ValueError(f"model.num_shape {m.num_shape} exceeds the model's {body.num_shape_coeffs} shape coefficients")
+    layout = ParamLayout(body.num_dofs, body.num_bone_coeffs, m.num_shape)
+    if init is None:
+        init = torch.zeros(layout.size)
+    return HMRBLSM(m.backbone, layout, body.num_shape_coeffs, init, pretrained=m.pretrained if pretrained is None else pretrained,
+                   hidden=m.hidden, dropout=m.dropout, iterations=m.ief_iterations)
+
+
+def warmup_cosine(step: int, total: int, warmup: int, schedule: str) -> float:
+    """Learning-rate factor: linear warm-up over ``warmup`` steps, then constant or cosine to 0."""
+    if warmup and step < warmup:
+        return (step + 1) / warmup
+    if schedule == "constant":
+        return 1.0
+    t = (step - warmup) / max(total - warmup, 1)
+    return 0.5 * (1.0 + math.cos(math.pi * min(max(t, 0.0), 1.0)))
+
+
+class HMRTask:
+    """The HMR-BLSM :class:`recovery.trainer.Task`.
+
+    Args:
+        cfg: the run's configuration.
+        body: the BLSM model (frozen; moved with the task).
+        init: (P,) Theta_0, the training set's mean parameters.
+        real: the discriminator's real poses (None without discriminator).
+        keypoint_names: the datasets' keypoint names (must be the model's).
+        crop: the network's input side, pixels.
+        checkpoint_meta: identifies what a checkpoint was made for (model file hash, ...).
+    """
+
+    name = "hmr_blsm"
+
+    def __init__(self, cfg: RecoveryConfig, body: nn.Module, init: torch.Tensor, real: RealPoses | None,
+                 keypoint_names: list[str], meta: dict[str, Any]) -> None:
+        self.cfg, self.body, self.real, self.meta = cfg, body, real, meta
+        if list(keypoint_names) != list(body.keypoint_names):
+            raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
+        self.crop = cfg.data.crop
+        self.model = build_model(cfg, body, init)
+        o = cfg.optim
+        self.opt = torch.optim.AdamW(self.model.parameters(), lr=o.lr, weight_decay=o.weight_decay)
+        total = cfg.train.steps
+        self.sched = torch.optim.lr_scheduler.LambdaLR(
+            self.opt, lambda s: warmup_cosine(s, total, o.warmup_steps, o.schedule))
+        self.disc: PoseDiscriminator | None = None
+        d = cfg.discriminator
+        if d.enabled:
+            if real is None:
+                raise ValueError("the discriminator needs real poses")
+            self.disc = PoseDiscriminator(body.dof_limits)
+            self.d_opt = torch.optim.Adam(self.disc.parameters(), lr=d.lr, weight_decay=d.weight_decay)
+        self.generator = torch.Generator().manual_seed(cfg.train.seed + 7919)  # real-pose draws
+        self.eval_idx = torch.tensor(indices(body.keypoint_names))
+        self.device = torch.device("cpu")
+        self.amp = False
+
+    # -- Task protocol
+    def modules(self) -> dict[str, nn.Module]:
+        return {"model": self.model, **({"disc": self.disc} if self.disc is not None else {})}
+
+    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        return {"model": self.opt, **({"disc": self.d_opt} if self.disc is not None else {})}
+
+    def schedulers(self) -> dict[str, Any]:
+        return {"model": self.sched}
+
+    def extra_state(self) -> dict[str, Any]:
+        return {"generator": self.generator.get_state()}
+
+    def load_extra_state(self, state: dict[str, Any]) -> None:
+        self.generator.set_state(state["generator"])
+
+    def checkpoint_meta(self) -> dict[str, Any]:
+        return dict(self.meta)
+
+    def to(self, device: torch.device) -> None:
+        self.device = device
+        self.body.to(device)
+        for m in self.modules().values():
+            m.to(device)
+        self.amp = device.type == "cuda" and self.cfg.train.bf16
+
+    def _autocast(self) -> Any:
+        if self.amp:
+            return torch.autocast("cuda", dtype=torch.bfloat16)
+        return contextlib.nullcontext()
+
+    # -- one step
+    def losses(self, batch: dict[str, torch.Tensor]) -> tuple[dict[str, torch.Tensor], Any]:
+        """The weighted loss terms of a batch (on the task's device) and the prediction."""
+        cfg, w = self.cfg, self.cfg.loss
+        with self._autocast():
+            pred = self.model(batch["image"])
+        pred = type(pred)(**{k: v.float() for k, v in vars(pred).items()})
+        out = predict_body(self.body, pred, batch["K_crop"], self.crop)
+        terms: dict[str, torch.Tensor] = {}
+        if w.keypoints_2d:
+            terms["kp2d"] = w.keypoints_2d * L.keypoint_2d_loss(out.keypoints_2d, batch["keypoints_2d"], self.crop)
+        if w.keypoints_3d:
+            terms["kp3d"] = w.keypoints_3d * L.keypoint_3d_loss(out.keypoints_3d, batch["keypoints_3d"])
+        limits = self.body.dof_limits
+        if w.pose:
+            terms["pose"] = w.pose * L.mse(normalise_angles(out.angles, limits), normalise_angles(batch["angles"], limits))
+        if w.global_orient:
+            terms["orient"] = w.global_orient * L.mse(pred.orient, batch["global_orient"])
+        if w.bone:
+            terms["bone"] = w.bone * L.mse(pred.bone, batch["bone"])
+        if w.shape and cfg.model.num_shape:
+            ns = cfg.model.num_shape
+            terms["shape"] = w.shape * L.mse(pred.shape[:, :ns], batch["shape"][:, :ns])
+        if w.vertices:
+            with torch.no_grad():
+                gt = body_outputs(self.body, batch["pose"], batch["global_orient"], batch["bone"], batch["shape"])
+            terms["verts"] = w.vertices * (out.vertices - gt.vertices).abs().sum(-1).mean()
+        if self.disc is not None and w.adversarial:
+            fake = self._fake_angles(pred)
+            terms["adv"] = w.adversarial * L.lsgan_generator_loss(self.disc(fake))
+        return terms, (pred, out)
+
+    def _fake_angles(self, pred: Any) -> torch.Tensor:
+        """Angles of the poses the discriminator judges: the last IEF iteration, or all of them."""
+        sl = self.model.layout.slices()["pose"]
+        thetas = pred.thetas[1:] if self.cfg.loss.all_iterations and pred.thetas.shape[0] > 1 else pred.thetas[-1:]
+        x = thetas[..., sl].reshape(-1, self.body.num_dofs)
+        return angles_from_unconstrained(x, self.body.dof_limits)
+
+    def training_step(self, batch: dict[str, torch.Tensor], step: int) -> dict[str, float]:
+        batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
+        self.model.train()
+        terms, (pred, _) = self.losses(batch)
+        total = torch.stack(list(terms.values())).sum()
+        L.check_finite({**terms, "total": total}, step, batch["key"].cpu())
+        self.opt.zero_grad(set_to_none=True)
+        total.backward()
+        if self.cfg.optim.grad_clip:
+            nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.optim.grad_clip)
+        self.opt.step()
+        self.sched.step()
+        logs = {k: float(v.detach()) for k, v in terms.items()}
+        logs["total"] = float(total.detach())
+        if self.disc is not None:
+            fake = self._fake_angles(pred).detach()
+            real = self.real.sample(fake.shape[0], self.generator).to(self.device)
+            d_loss = L.lsgan_discriminator_loss(self.disc(real), self.disc(fake))
+            L.check_finite({"disc": d_loss}, step, batch["key"].cpu())
+            self.d_opt.zero_grad(set_to_none=True)
+            d_loss.backward()
+            self.d_opt.step()
+            logs["disc"] = float(d_loss.detach())
+        logs["lr"] = float(self.sched.get_last_lr()[0])
+        return logs
+
+    @torch.no_grad()
+    def predict(self, images: torch.Tensor, k_crop: torch.Tensor) -> Any:
+        self.model.eval()
+        with self._autocast():
+            pred = self.model(images.to(self.device))
+        pred = type(pred)(**{k: v.float() for k, v in vars(pred).items()})
+        return pred, predict_body(self.body, pred, k_crop.to(self.device), self.crop)
+
+    @torch.no_grad()
+    def validate(self, loader: Any) -> dict[str, float]:
+        """MPJPE (pelvis-aligned), PA-MPJPE on :data:`recovery.joints.EVAL_JOINTS` and PVE, mm."""
+        err: dict[str, list[torch.Tensor]] = {"mpjpe_mm": [], "pa_mpjpe_mm": [], "pve_mm": []}
+        for batch in loader:
+            batch = {k: v.to(self.device) for k, v in batch.items()}
+            pred, out = self.predict(batch["image"], batch["K_crop"])
+            p3 = out.keypoints_3d[:, self.eval_idx]
+            g3 = batch["keypoints_3d"][:, self.eval_idx]
+            err["mpjpe_mm"].append(M.mpjpe(M.pelvis_aligned(p3, PELVIS), M.pelvis_aligned(g3, PELVIS)) * 1000)
+            err["pa_mpjpe_mm"].append(M.pa_mpjpe(p3, g3) * 1000)
+            gt = body_outputs(self.body, batch["pose"], batch["global_orient"], batch["bone"], batch["shape"])
+            err["pve_mm"].append(M.mpjpe(out.vertices, gt.vertices) * 1000)
+        return {k: float(torch.cat(v).mean()) for k, v in err.items() if v}

@@ -1,0 +1,1 @@
+"""Networks of the recovery models: image backbones (``backbone``), heads, discriminator, losses."""
