@@ -37,7 +37,7 @@ def read_image(path: str | Path) -> np.ndarray:
         raise ValueError(f"{path}: no such image")
     try:
         with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
+            return np.array(im.convert("RGB"))  # writable: torch.from_numpy warns on a read-only array
     except (UnidentifiedImageError, OSError) as exc:
         raise ValueError(f"{path}: not a readable image ({exc})") from None
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 import blsm
@@ -74,8 +73,8 @@ def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[HMRTask, CropCache, Cr
     """The task with its model, caches and real poses for ``cfg``."""
     if cfg.train.threads:
         torch.set_num_threads(cfg.train.threads)
-    torch.manual_seed(cfg.train.seed)
     train_dirs, val_dir = caches(cfg, log)
+    torch.manual_seed(cfg.train.seed)  # after the caches: building one draws from torch's RNG
     train = CropCache(train_dirs)
     val = CropCache([val_dir]) if val_dir is not None else None
     path = model_file(cfg)
@@ -132,5 +131,4 @@ def train(cfg: RecoveryConfig, out: str | Path, resume: bool = False, log: Any =
     log(f"[recovery] train: {len(train_ds)} people from {len(cfg.data.train)} datasets; "
         f"val: {0 if val_ds is None else min(len(val_ds), cfg.data.max_val or len(val_ds))} people; "
         f"{cfg.model.backbone}, {cfg.train.steps} steps of {cfg.train.batch_size}")
-    np.seterr(all="ignore")
     return trainer.run()

@@ -1,0 +1,183 @@
+"""recovery.data: the crop cache equals SynthDataset's crops, per-batch augmentation keeps 2D, 3D,
+camera and pose labels consistent (rotation, scale, shift, flip), and the data order resumes."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+import torch
+from recovery_helpers import CONTEXT, CROP
+
+from blsm.skeleton import mirror_name
+from recovery.config import AugmentSpec
+from recovery.data import (
+    BatchAugment,
+    CropCache,
+    ResumableSampler,
+    augment_config,
+    build_cache,
+    rotmat,
+    spread_indices,
+)
+from recovery.geometry import project
+from synth.data import CropParams, SynthDataset
+
+MIRROR = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+TURN = CropParams(rotation_deg=23.0, scale=0.85, shift=(0.04, -0.03))
+
+
+def _stack(items):
+    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+
+
+@pytest.fixture(scope="module")
+def cache(cache_dir):
+    return CropCache([cache_dir])
+
+
+@pytest.fixture(scope="module")
+def raw(cache):
+    """Every cache item, stacked (uint8 images at CONTEXT times the crop's field of view)."""
+    return _stack([cache[(0, i)] for i in range(len(cache))])
+
+
+def _augment(cache, model, spec=None, seed=0):
+    return BatchAugment(
+        CROP, cache.context, augment_config(spec), seed, model.dof_mirror, cache.keypoint_names
+    )
+
+
+def test_cache_layout(cache, raw, fake_root):
+    # 6 images, 9 people in view: samples 0, 2, 4 show two; 1, 3, 5 one (1's second is out of frame).
+    assert len(cache) == 9
+    side = round(CROP * CONTEXT)
+    assert (
+        cache.side == side
+        and raw["images"].shape == (9, side, side, 3)
+        and raw["images"].dtype == torch.uint8
+    )
+    assert cache.label("pose").shape == (9, 47)
+    # A valid cache is reused, not rebuilt.
+    meta = cache.folders[0] / "meta.json"
+    before = meta.stat().st_mtime_ns
+    assert (
+        build_cache(fake_root, cache.folders[0], CROP, CONTEXT, workers=0, log=lambda *a: None)
+        == cache.folders[0]
+    )
+    assert meta.stat().st_mtime_ns == before
+
+
+def test_centre_of_the_cache_is_the_synth_dataset_crop(cache, raw, fake_root, model):
+    """Un-augmented, BatchAugment's centre crop of the cache (1.8 x the box at 48 px) is SynthDataset's
+    crop at SPIN's 1.2 x the box (32 px): the same pixel grid, so labels agree to rounding and the
+    image to its uint8 quantisation."""
+    got = _augment(cache, model)([cache[(0, i)] for i in range(len(cache))])
+    ds = SynthDataset(fake_root, crop=CROP, box_scale=1.2)
+    ref = _stack([ds[i] for i in range(len(ds))])
+    assert (got["keypoints_2d"][..., :2] - ref["keypoints_2d"][..., :2]).abs().max() < 1e-3  # px
+    assert torch.equal(got["keypoints_2d"][..., 2], ref["keypoints_2d"][..., 2])
+    assert (got["keypoints_3d"] - ref["keypoints_3d"]).abs().max() < 1e-5  # m
+    assert (got["transl_cam"] - ref["transl_cam"]).abs().max() < 1e-5
+    torch.testing.assert_close(got["K_crop"], ref["K_crop"], atol=1e-3, rtol=1e-6)
+    torch.testing.assert_close(got["global_orient"], rotmat(ref["global_orient"]), atol=1e-6, rtol=0)
+    for k in ("pose", "angles", "bone", "shape"):
+        assert torch.equal(got[k], ref[k]), k
+    assert (got["image"] - ref["image"]).abs().max() <= 0.51 / 255
+    assert torch.equal(got["mask"], ref["mask"]) and torch.equal(got["parts"], ref["parts"])
+    assert got["mask"].any(1).any(1).all()  # every person has pixels in its crop
+
+
+@pytest.mark.parametrize(
+    "params", [TURN, CropParams(rotation_deg=-31.0, scale=1.2, shift=(-0.02, 0.05), flip=True)]
+)
+def test_augmented_labels_project_exactly(cache, raw, model, params):
+    b = _augment(cache, model).apply(raw, [params] * len(cache))
+    uv = project(b["keypoints_3d"] + b["transl_cam"][:, None], b["K_crop"])
+    assert (uv - b["keypoints_2d"][..., :2]).abs().max() < 1e-3  # px, every keypoint, visible or not
+    # ... and the BLSM body of the augmented parameters is the augmented skeleton.
+    from recovery.models.hmr import body_outputs
+
+    out = body_outputs(model, b["pose"], b["global_orient"], b["bone"], b["shape"])
+    limit = 1e-5 if not params.flip else 2e-3  # the rig is symmetric to about a millimetre
+    assert (out.keypoints_3d - b["keypoints_3d"]).norm(dim=-1).max() < limit
+
+
+def test_seeded_random_augmentation_projects_exactly_and_is_repeatable(cache, model):
+    spec = AugmentSpec(rotation_prob=1.0, flip_prob=0.5)
+    aug = _augment(cache, model, spec, seed=3)
+    items = [cache[(1, i)] for i in range(len(cache))]
+    params = [aug.params(1, i) for i in range(len(cache))]
+    assert any(p.flip for p in params) and not all(p.flip for p in params)
+    assert all(p.rotation_deg != 0 and p.scale != 1 for p in params)
+    b = aug(items)
+    uv = project(b["keypoints_3d"] + b["transl_cam"][:, None], b["K_crop"])
+    assert (uv - b["keypoints_2d"][..., :2]).abs().max() < 1e-3
+    again = aug(items[::-1])
+    assert torch.equal(again["image"], b["image"].flip(0))  # a function of (seed, epoch, item) only
+    other = _augment(cache, model, spec, seed=4)(items)
+    assert not torch.equal(other["keypoints_2d"], b["keypoints_2d"])
+
+
+def test_flip_mirrors_everything(cache, raw, model):
+    aug = _augment(cache, model)
+    n = len(cache)
+    plain = aug.apply(raw, [TURN] * n)
+    flip = aug.apply(
+        raw, [CropParams(rotation_deg=TURN.rotation_deg, scale=TURN.scale, shift=TURN.shift, flip=True)] * n
+    )
+    assert torch.equal(flip["pose"], model.mirror_pose(plain["pose"]))
+    assert torch.equal(flip["angles"], model.mirror_pose(plain["angles"]))
+    assert not torch.equal(flip["pose"], plain["pose"])
+    names = cache.keypoint_names
+    perm = [names.index(mirror_name(n)) for n in names]
+    assert perm != list(range(len(names)))
+    torch.testing.assert_close(
+        flip["keypoints_3d"], plain["keypoints_3d"][:, perm] @ MIRROR, atol=1e-6, rtol=0
+    )
+    torch.testing.assert_close(flip["transl_cam"], plain["transl_cam"] @ MIRROR)
+    torch.testing.assert_close(
+        flip["global_orient"], MIRROR @ plain["global_orient"] @ MIRROR, atol=1e-6, rtol=0
+    )
+    u = CROP - plain["keypoints_2d"][:, perm, 0]
+    torch.testing.assert_close(flip["keypoints_2d"][..., 0], u, atol=1e-4, rtol=0)
+    torch.testing.assert_close(
+        flip["keypoints_2d"][..., 1:], plain["keypoints_2d"][:, perm, 1:], atol=1e-4, rtol=0
+    )
+    # The image is the mirror image; the parts are mirrored and their left and right swapped.
+    assert (flip["image"] - plain["image"].flip(-1)).abs().max() < 1e-4
+    assert torch.equal(flip["mask"], plain["mask"].flip(-1))
+    assert torch.equal(flip["parts"], aug.part_swap[plain["parts"].flip(-1)])
+    assert not torch.equal(aug.part_swap, torch.arange(len(aug.part_swap)))
+
+
+def test_resumable_sampler_continues_the_same_order():
+    n, seed = 9, 5
+    whole = list(itertools.islice(iter(ResumableSampler(n, seed)), 40))
+    for epoch in range(4):
+        keys = [i for e, i in whole if e == epoch]
+        if len(keys) == n:
+            assert sorted(keys) == list(range(n))  # each epoch is a permutation
+    assert [i for e, i in whole if e == 0] != [i for e, i in whole if e == 1]
+    for pos in range(40):
+        rest = list(itertools.islice(iter(ResumableSampler(n, seed, pos // n, pos % n)), 40 - pos))
+        assert rest == whole[pos:], pos
+    assert list(itertools.islice(iter(ResumableSampler(n, seed + 1)), 40)) != whole
+    assert [i for _, i in itertools.islice(iter(ResumableSampler(n, seed, shuffle=False)), n)] == list(
+        range(n)
+    )
+
+
+def test_spread_indices():
+    assert spread_indices(10, 0).tolist() == list(range(10))
+    assert spread_indices(10, 20).tolist() == list(range(10))
+    got = spread_indices(100, 7)
+    assert len(got) == 7 and got[0] == 0 and np.all(np.diff(got) >= 14)
+
+
+def test_missing_or_foreign_cache_is_a_one_line_error(tmp_path):
+    with pytest.raises(ValueError, match=f"{tmp_path / 'meta.json'}: not a crop cache"):
+        CropCache([tmp_path])
+    with pytest.raises(ValueError, match="no dataset manifest here"):
+        build_cache(tmp_path, tmp_path / "c", CROP, CONTEXT, workers=0)

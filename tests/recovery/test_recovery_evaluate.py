@@ -1,0 +1,108 @@
+"""recovery.evaluate: ``recovery evaluate`` writes every metric, baseline and split and a results
+sheet; the fixed-skeleton baseline is the generalised Procrustes mean."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+from recovery_helpers import one_thread
+
+from recovery import metrics as M
+from recovery.cli import main
+from recovery.evaluate import fixed_skeleton
+
+SEGMENTATION = {"fg_accuracy", "fg_f1", "parts_accuracy", "parts_macro_f1"}
+
+
+def _similar_copies(gen, base, n, noise=0.0):
+    q, _ = torch.linalg.qr(torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
+    q = q * torch.linalg.det(q)[:, None, None]  # proper rotations
+    scale = 0.5 + 2 * torch.rand(n, generator=gen, dtype=torch.float64)
+    shape = base + noise * torch.randn(n, *base.shape, generator=gen, dtype=torch.float64)
+    return scale[:, None, None] * shape @ q.transpose(1, 2) + torch.randn(
+        n, 1, 3, generator=gen, dtype=torch.float64
+    )
+
+
+def test_fixed_skeleton_of_similar_skeletons_fits_each_exactly(gen):
+    base = torch.randn(17, 3, generator=gen, dtype=torch.float64)
+    joints = _similar_copies(gen, base, 6)
+    skel = fixed_skeleton(joints)
+    assert skel.shape == (17, 3)
+    assert M.pa_mpjpe(skel.expand_as(joints), joints).max() < 1e-9
+    assert M.pa_mpjpe(skel[None], base[None]).item() < 1e-9
+
+
+def test_fixed_skeleton_is_the_mean_shape(gen):
+    """With each person's shape the base plus noise, the Procrustes mean is nearer the base and
+    nearer everyone than any one person is (a constant guess of person 0 would not be)."""
+    base = torch.randn(17, 3, generator=gen, dtype=torch.float64)
+    joints = _similar_copies(gen, base, 8, noise=0.1)
+    skel = fixed_skeleton(joints)
+    to_base = M.pa_mpjpe(joints, base.expand_as(joints))
+    assert M.pa_mpjpe(skel[None], base[None]).item() < 0.7 * to_base.min()
+    each = [M.pa_mpjpe(joints[i].expand_as(joints), joints).mean() for i in range(8)]
+    assert M.pa_mpjpe(skel.expand_as(joints), joints).mean() < min(each)
+
+
+@pytest.fixture(scope="module")
+def evaluated(run_a, fake_root, tmp_path_factory):
+    out = tmp_path_factory.mktemp("recovery_eval") / "eval"
+    with one_thread():
+        assert (
+            main(["evaluate", str(run_a / "last.pt"), str(fake_root), "--out", str(out), "--batch", "4"]) == 0
+        )
+    return out, json.loads((out / "metrics.json").read_text())
+
+
+def test_evaluate_writes_every_metric(evaluated, capsys):
+    out, m = evaluated
+    for key in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pck_0.05", "pck_0.1"):
+        assert math.isfinite(m[key]) and m[key] >= 0, key
+    assert m["people"] == 9 and m["subjects"] == 2 and m["crop"] == 32
+    assert 0 <= m["pck_0.05"] <= m["pck_0.1"] <= 1
+    assert m["pa_mpjpe_mm"] <= m["mpjpe_mm"]  # the alignment can only help
+    assert set(m["segmentation"]) == SEGMENTATION
+    assert all(0 <= v <= 1 for v in m["segmentation"].values())
+    assert set(m["baselines"]) == {"fixed_skeleton", "mean_pose"}
+    for b in m["baselines"].values():
+        assert b["pa_mpjpe_mm"] > 0 and b["mpjpe_mm"] > 0
+    # Six steps from Theta_0: the network is still about the mean pose.
+    assert m["pa_mpjpe_mm"] == pytest.approx(m["baselines"]["mean_pose"]["pa_mpjpe_mm"], rel=0.1)
+    assert m["relative"]["pa_mpjpe_vs_fixed_skeleton"] == pytest.approx(
+        m["pa_mpjpe_mm"] / m["baselines"]["fixed_skeleton"]["pa_mpjpe_mm"] - 1
+    )
+
+
+def test_evaluate_splits(evaluated):
+    _, m = evaluated
+    s = m["splits"]
+    assert set(s) == {"view", "truncated", "people_per_image"}
+    # The fake cameras carry no view or truncation: every person counts as normal and whole.
+    assert s["view"]["normal"]["people"] == 9 and s["view"]["rare"] == {"people": 0}
+    assert s["truncated"]["no"]["people"] == 9 and s["truncated"]["yes"] == {"people": 0}
+    assert {k: v["people"] for k, v in s["people_per_image"].items()} == {"1": 2, "2": 7}
+    assert s["view"]["normal"]["pa_mpjpe_mm"] == pytest.approx(m["pa_mpjpe_mm"])
+    assert set(s["people_per_image"]["2"]["segmentation"]) == SEGMENTATION
+
+
+def test_evaluate_draws_a_sheet(evaluated):
+    from PIL import Image
+
+    out, _ = evaluated
+    with Image.open(out / "sheet.png") as im:
+        assert im.size[0] == 5 * 128 and im.size[1] > 4 * 128  # 5 columns, rows by quartile
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "sheet.png"]
+
+
+def test_evaluate_max_people(run_a, fake_root, tmp_path):
+    assert (
+        main(
+            ["evaluate", str(run_a / "last.pt"), str(fake_root), "--out", str(tmp_path), "--max-people", "3"]
+        )
+        == 0
+    )
+    assert json.loads((tmp_path / "metrics.json").read_text())["people"] == 3
