@@ -11,12 +11,14 @@ $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	touch $(STAMP)
 
 # 64 labelled images with the embedded defaults (re-running continues or keeps the same dataset),
-# checked, and their contact sheet; plus a sheet of random BLSM bodies.
+# checked, and their contact sheet; a sheet of random BLSM bodies; the packaged HMR-BLSM evaluated
+# on them (out/demo/recovery: metrics.json and its results sheet).
 demo: $(STAMP)
 	$(BIN)/synth generate - --out out/demo/dataset --num 64 --workers 2 --resume
 	$(BIN)/synth validate out/demo/dataset
 	$(BIN)/synth preview out/demo/dataset --out out/demo/contact_sheet.png --count 16
 	$(BIN)/blsm demo --out out/demo/bodies
+	$(BIN)/recovery evaluate default out/demo/dataset --out out/demo/recovery
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"

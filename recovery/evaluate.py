@@ -58,6 +58,29 @@ def fixed_skeleton(joints: torch.Tensor, iterations: int = 20) -> torch.Tensor:
     return s
 
 
+def pose_prior_outliers(pred: torch.Tensor, label: torch.Tensor, prior_path: str | Path | None = None) -> dict[str, Any]:
+    """The fraction of predicted poses whose log-probability under the packaged CMU pose prior is
+    below the 1st percentile of the labels' (real mocap frames: on the test set, the two clips held
+    out of the prior). Unconstrained values are clipped to ``|x| <= X_CLIP`` first, as the prior's
+    own training values were.
+
+    Args:
+        pred: (N, 47) predicted unconstrained values. label: (M, 47) the labels' values.
+    """
+    from blsm.mocap.prior import X_CLIP, load_prior
+
+    path = prior_path or Path(__import__("blsm").__file__).parent / "data" / "pose_prior_cmu.npz"
+    prior = load_prior(path)
+    with torch.no_grad():
+        lp_real = prior.log_prob(label.double().clamp(-X_CLIP, X_CLIP))
+        lp_pred = prior.log_prob(pred.double().clamp(-X_CLIP, X_CLIP))
+    threshold = float(torch.quantile(lp_real, 0.01))
+    return {"threshold_log_prob": threshold, "fraction_below": float((lp_pred < threshold).double().mean()),
+            "labels_below": float((lp_real < threshold).double().mean()),
+            "prior": str(Path(path).name),
+            "note": "threshold: 1st percentile of the labels' log-probability (real mocap frames)"}
+
+
 def _segmentation(pred_labels: np.ndarray, gt_parts: np.ndarray, gt_mask: np.ndarray) -> np.ndarray:
     gt = np.where(gt_mask, gt_parts, 0)
     return M.confusion_matrix(torch.from_numpy(pred_labels), torch.from_numpy(gt), 7).numpy()
@@ -101,6 +124,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     mean = pr.model.decode(theta0[None, None].expand(1, 1, -1))
     mean_kp = body_outputs(pr.body, mean.pose, mean.orient, mean.bone, mean.shape).keypoints_3d[0, ev]
 
+    poses: dict[str, list[torch.Tensor]] = {"pred": [], "label": []}
     rows: dict[str, list[float]] = {k: [] for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pck_0.05", "pck_0.1", "mean_pose_mpjpe_mm", "mean_pose_pa_mpjpe_mm")}
     confs: list[np.ndarray] = []
     gt_joints: list[torch.Tensor] = []
@@ -120,6 +144,8 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
         rows["mean_pose_mpjpe_mm"] += (M.mpjpe(mk - mk.mean(1, keepdim=True) + g3.mean(1, keepdim=True), g3) * 1000).tolist()
         rows["mean_pose_pa_mpjpe_mm"] += (M.pa_mpjpe(mk, g3) * 1000).tolist()
         gt_joints.append(g3.double())
+        poses["pred"].append(pred.pose)
+        poses["label"].append(b["pose"])
         verts = (po.vertices + po.transl[:, None]).numpy()
         for i in range(len(verts)):
             lab = rasterize_labels(verts[i], faces, b["K_crop"][i].numpy(), crop, crop, flabels)
@@ -139,6 +165,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     fixed_pa = (M.pa_mpjpe(skel.expand_as(joints), joints) * 1000).numpy()
     fixed_mp = (M.mpjpe(M.pelvis_aligned(skel.expand_as(joints), PELVIS), M.pelvis_aligned(joints, PELVIS)) * 1000).numpy()
 
+    prior_check = pose_prior_outliers(torch.cat(poses["pred"]), torch.cat(poses["label"]))
     view, trunc, people = info["view"][chosen], info["truncated"][chosen], info["people"][chosen]
     all_sel = np.ones(len(chosen), bool)
     res: dict[str, Any] = {
@@ -157,6 +184,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
             "truncated": {"no": _summary(rows_np, conf, ~trunc), "yes": _summary(rows_np, conf, trunc)},
             "people_per_image": {str(k): _summary(rows_np, conf, people == k) for k in sorted(set(people.tolist()))},
         },
+        "pose_prior": prior_check,
         "subjects": int(len(set(info["subject"][chosen].tolist()))),
         "seconds": round(time.perf_counter() - t0, 1),
     }
@@ -218,6 +246,7 @@ def format_report(res: dict[str, Any]) -> str:
         f"PCK@0.05 {res['pck_0.05']:.3f}  PCK@0.1 {res['pck_0.1']:.3f}",
         f"  segmentation: fg acc {seg.get('fg_accuracy', float('nan')):.3f} F1 {seg.get('fg_f1', float('nan')):.3f}; "
         f"parts acc {seg.get('parts_accuracy', float('nan')):.3f} macro F1 {seg.get('parts_macro_f1', float('nan')):.3f}",
+        f"  poses below the prior's 1st percentile of real frames: {100 * res['pose_prior']['fraction_below']:.1f} %",
         f"  fixed skeleton PA-MPJPE {b['fixed_skeleton']['pa_mpjpe_mm']:.1f} mm ({100 * res['relative']['pa_mpjpe_vs_fixed_skeleton']:+.1f} %); "
         f"mean pose MPJPE {b['mean_pose']['mpjpe_mm']:.1f} mm ({100 * res['relative']['mpjpe_vs_mean_pose']:+.1f} %)",
     ]

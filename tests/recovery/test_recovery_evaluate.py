@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -75,6 +76,22 @@ def test_evaluate_writes_every_metric(evaluated, capsys):
     assert m["relative"]["pa_mpjpe_vs_fixed_skeleton"] == pytest.approx(
         m["pa_mpjpe_mm"] / m["baselines"]["fixed_skeleton"]["pa_mpjpe_mm"] - 1
     )
+    pp = m["pose_prior"]
+    assert 0 <= pp["fraction_below"] <= 1 and math.isfinite(pp["threshold_log_prob"])
+
+
+def test_pose_prior_outliers_counts_implausible_poses():
+    from blsm.mocap.prior import load_prior
+    from recovery.evaluate import pose_prior_outliers
+
+    prior = load_prior(Path(__file__).parents[2] / "blsm" / "data" / "pose_prior_cmu.npz")
+    real = prior.sample(400, torch.Generator().manual_seed(0))
+    # Prior draws as predictions: about 1 % fall below the labels' 1st percentile.
+    same = pose_prior_outliers(prior.sample(400, torch.Generator().manual_seed(1)), real)
+    assert same["fraction_below"] < 0.05 and same["labels_below"] == pytest.approx(0.01, abs=0.005)
+    # Every atom at alternating extremes: far outside the mocap distribution.
+    odd = torch.tensor([3.0, -3.0] * 23 + [3.0]).expand(10, 47)
+    assert pose_prior_outliers(odd, real)["fraction_below"] == 1.0
 
 
 def test_evaluate_splits(evaluated):
