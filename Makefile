@@ -67,7 +67,7 @@ recovery-data: $(STAMP)
 	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/data/train_hdri --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
 
-# The packaged HMR-BLSM (docs/recovery.md): train (about 90 minutes on 2 cores; an interrupted run
+# The packaged HMR-BLSM (docs/recovery.md): train (about 55 minutes on 2 cores; an interrupted run
 # continues), evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
 recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume

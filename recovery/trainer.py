@@ -319,7 +319,7 @@ def plot_curves(log: str | Path, png: str | Path, val_metric: str = "pa_mpjpe_mm
     train = [r for r in recs if r["kind"] == "train"]
     val = [r for r in recs if r["kind"] == "val"]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    keys = [k for k in (train[0] if train else {}) if k not in ("kind", "step", "epoch", "time")]
+    keys = [k for k in (train[0] if train else {}) if k not in ("kind", "step", "epoch", "time", "lr")]
     for k in keys:
         ys = [r[k] for r in train]
         if any(y > 0 for y in ys):
