@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=32)
     ap.add_argument("--steps", type=int, default=12, help="timed steps per round and condition")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--workers", type=int, default=0, help="loader workers (0: augment in the main process, best on 2 cores)")
     args = ap.parse_args(argv)
     if not (Path(args.dataset) / "manifest.json").is_file():
         print(f"bench_recovery: error: {args.dataset}: no dataset (make recovery-data, or --dataset DIR)", file=sys.stderr)

@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--runs", default="out/runs")
     ap.add_argument("--only", nargs="*", default=list(CONFIGS))
     ap.add_argument("--out", default="docs/recovery_comparison")
+    ap.add_argument("--max-people", type=int, default=600, help="test people evaluated, spread evenly (the same for every config)")
     args = ap.parse_args(argv)
     exe = str(Path(sys.executable).parent / "recovery")
     results = {}
@@ -47,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         train = [r for r in logs if r["kind"] == "train"]
         wall = (train[-1]["time"] - train[0]["time"]) / 60 if len(train) > 1 else minutes
         ev = Path("out/eval") / name
-        run([exe, "evaluate", str(run_dir / "last.pt"), args.test, "--out", str(ev)])
+        run([exe, "evaluate", str(run_dir / "last.pt"), args.test, "--out", str(ev), "--max-people", str(args.max_people)])
         m = json.loads((ROOT / ev / "metrics.json").read_text())
         results[name] = {
             "config": cfg, "train_minutes": round(wall, 1), "people": m["people"],

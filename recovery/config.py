@@ -89,7 +89,7 @@ class DataConfig:
     crop: int = 128
     cache: str = "out/cache"
     context: float = 1.5
-    workers: int = 1
+    workers: int = 0
     max_val: int = 400
     augment: AugmentSpec | None = field(default_factory=AugmentSpec)
 
