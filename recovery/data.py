@@ -126,10 +126,10 @@ def _stack(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
 def person_info(ds: SynthDataset) -> dict[str, np.ndarray]:
     """Per item: view (0 normal, 1 rare), truncated, people in the image, subject id."""
     view, trunc, people, subject = [], [], [], []
-    cache: dict[int, dict[str, Any]] = {}
-    for s, p in ds.items:
-        meta = cache.get(s) or ds.index.json(s)
-        cache = {s: meta}
+    last, meta = -1, {}
+    for s, p in ds.items:  # the people of one image are consecutive: read its labels once
+        if s != last:
+            last, meta = s, ds.index.json(s)
         cam = meta["camera"].get("info", {})
         view.append(VIEWS.index(cam.get("view", "normal")) if cam.get("view", "normal") in VIEWS else 1)
         trunc.append(bool(cam.get("truncated", False)))
@@ -355,12 +355,11 @@ def real_poses(body: torch.nn.Module, prior_path: str, prior_samples: int, libra
         seed: seed of the prior draws.
     """
     from blsm.joint_limits import angles_from_unconstrained
-    from blsm.mocap.prior import load_prior
+    from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
 
     chunks, sources = [], {}
     if prior_samples:
-        path = prior_path or str(Path(__import__("blsm").__file__).parent / "data" / "pose_prior_cmu.npz")
-        prior = load_prior(path)
+        prior = load_prior(prior_path or DEFAULT_PRIOR)
         x = prior.sample(prior_samples, torch.Generator().manual_seed(seed)).float()
         chunks.append(x)
         sources["prior"] = int(x.shape[0])
@@ -381,11 +380,6 @@ def real_poses(body: torch.nn.Module, prior_path: str, prior_samples: int, libra
     with torch.no_grad():
         angles = angles_from_unconstrained(x, body.dof_limits.float())
     return RealPoses(angles=angles, sources=sources)
-
-
-def rotmat(aa: torch.Tensor) -> torch.Tensor:
-    """(B, 3) axis-angle -> (B, 3, 3)."""
-    return axis_angle_to_rotation_matrix(aa)
 
 
 def spread_indices(n: int, k: int) -> np.ndarray:

@@ -34,7 +34,7 @@ import torch
 
 from blsm.io import atomic_write
 from recovery import metrics as M
-from recovery.data import VIEWS, person_info
+from recovery.data import VIEWS, person_info, spread_indices
 from recovery.joints import EVAL_JOINTS, PELVIS, indices
 from recovery.models.hmr import body_outputs
 from recovery.predictor import load_predictor
@@ -67,9 +67,9 @@ def pose_prior_outliers(pred: torch.Tensor, label: torch.Tensor, prior_path: str
     Args:
         pred: (N, 47) predicted unconstrained values. label: (M, 47) the labels' values.
     """
-    from blsm.mocap.prior import X_CLIP, load_prior
+    from blsm.mocap.prior import DEFAULT_PRIOR, X_CLIP, load_prior
 
-    path = prior_path or Path(__import__("blsm").__file__).parent / "data" / "pose_prior_cmu.npz"
+    path = prior_path or DEFAULT_PRIOR
     prior = load_prior(path)
     with torch.no_grad():
         lp_real = prior.log_prob(label.double().clamp(-X_CLIP, X_CLIP))
@@ -111,8 +111,6 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
         raise ValueError(f"{dataset}: its keypoint_names are not the checkpoint's BLSM model's")
     info = person_info(ds)
     n = len(ds) if not max_people else min(max_people, len(ds))
-    from recovery.data import spread_indices
-
     chosen = spread_indices(len(ds), n)
     sub = torch.utils.data.Subset(ds, chosen.tolist())
     loader = torch.utils.data.DataLoader(sub, batch_size=batch, num_workers=1)

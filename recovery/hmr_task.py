@@ -125,8 +125,7 @@ class HMRTask:
         """The weighted loss terms of a batch (on the task's device) and the prediction."""
         cfg, w = self.cfg, self.cfg.loss
         with self._autocast():
-            pred = self.model(batch["image"])
-        pred = type(pred)(**{k: v.float() for k, v in vars(pred).items()})
+            pred = self.model(batch["image"]).float()
         out = predict_body(self.body, pred, batch["K_crop"], self.crop)
         terms: dict[str, torch.Tensor] = {}
         if w.keypoints_2d:
@@ -189,8 +188,7 @@ class HMRTask:
     def predict(self, images: torch.Tensor, k_crop: torch.Tensor) -> Any:
         self.model.eval()
         with self._autocast():
-            pred = self.model(images.to(self.device))
-        pred = type(pred)(**{k: v.float() for k, v in vars(pred).items()})
+            pred = self.model(images.to(self.device)).float()
         return pred, predict_body(self.body, pred, k_crop.to(self.device), self.crop)
 
     @torch.no_grad()

@@ -243,7 +243,7 @@ class Trainer:
         metrics = self.task.validate(self.val_loader)
         rec = {"kind": "val", "step": self.step, "time": time.time(), "seconds": time.perf_counter() - t0, **metrics}
         self._log(rec)
-        sys.stderr.write(("\n" if Progress(1, 0).tty else "") + "[val] step {}: {}\n".format(
+        sys.stderr.write(("\n" if sys.stderr.isatty() else "") + "[val] step {}: {}\n".format(
             self.step, " ".join(f"{k} {v:.4g}" for k, v in metrics.items())))
         value = metrics.get(self.best_metric, float("inf"))
         if value < self.best:

@@ -22,12 +22,13 @@ def face_parts(faces: np.ndarray, vertex_parts: np.ndarray) -> np.ndarray:
 
 
 def shade(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int, height: int,
-          color: tuple[float, float, float] | np.ndarray = (0.75, 0.75, 0.8)) -> tuple[np.ndarray, np.ndarray]:
-    """Flat-shaded render (headlight): (H, W, 3) float in [0, 1] and the (H, W) coverage mask.
+          color: tuple[float, float, float] | np.ndarray = (0.75, 0.75, 0.8)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat-shaded render (headlight): (H, W, 3) float in [0, 1], the (H, W) coverage mask and the
+    (H, W) depth (inf where uncovered).
 
     ``color`` is one RGB for the whole mesh or (F, 3) per face.
     """
-    face_index, _ = rasterize(vertices, faces, K, width, height)
+    face_index, depth = rasterize(vertices, faces, K, width, height)
     v = np.asarray(vertices, np.float64)
     tri = v[faces]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
@@ -41,14 +42,14 @@ def shade(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int, he
     mask = face_index >= 0
     out = np.zeros((height, width, 3))
     out[mask] = face_rgb[face_index[mask]]
-    return out, mask
+    return out, mask, depth
 
 
 def overlay(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, alpha: float = 0.7,
             color: tuple[float, float, float] | np.ndarray = (0.75, 0.75, 0.8)) -> np.ndarray:
     """The shaded mesh over ``image`` (H, W, 3) uint8 with opacity ``alpha``."""
     h, w = image.shape[:2]
-    rgb, mask = shade(vertices, faces, K, w, h, color)
+    rgb, mask, _ = shade(vertices, faces, K, w, h, color)
     out = image.astype(np.float64) / 255.0
     out[mask] = (1 - alpha) * out[mask] + alpha * rgb[mask]
     return (out * 255 + 0.5).clip(0, 255).astype(np.uint8)
@@ -83,8 +84,7 @@ def side_view(meshes: list[tuple[np.ndarray, tuple[float, float, float]]], faces
     depth = np.full((size, size), np.inf)
     for m, col in moved:
         v = m - np.array([mid[0], mid[1], 0]) + np.array([0, 0, dist])
-        rgb, mask = shade(v, faces, K, size, size, col)
-        _, d = rasterize(v, faces, K, size, size)
+        rgb, mask, d = shade(v, faces, K, size, size, col)
         nearer = mask & (d < depth)
         out[nearer] = rgb[nearer]
         depth[nearer] = d[nearer]

@@ -140,10 +140,10 @@ class PoseSource:
     """Draws a pose (x, global orientation) from the prior or the motion library."""
 
     def __init__(self, cfg: GeneratorConfig) -> None:
-        from blsm.mocap.prior import load_prior
+        from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
 
         self.cfg = cfg.poses
-        self.prior = load_prior(self.cfg.prior) if self.cfg.prior else load_prior(Path(__file__).parents[1] / "blsm" / "data" / "pose_prior_cmu.npz")
+        self.prior = load_prior(self.cfg.prior or DEFAULT_PRIOR)
         self.clips: list[Any] = []
         if self.cfg.source != "prior":
             from blsm.mocap.library import list_clips, load_clip

@@ -46,6 +46,8 @@ from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angl
 
 FORMAT = "blsm-pose-prior"
 FORMAT_VERSION = 1
+DEFAULT_PRIOR = Path(__file__).resolve().parents[1] / "data" / "pose_prior_cmu.npz"
+"""The packaged CMU pose prior (``make prior``; clips 007_12 and 005_20 held out)."""
 X_CLIP = 3.0  # |x| bound applied to training values; tanh(3) = 0.995
 WEIGHT_SUM_TOL = 1e-5
 

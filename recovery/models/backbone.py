@@ -42,6 +42,7 @@ networks put warp-lang's cat photo (``warp/examples/assets/pixel.jpg``) in Image
 
 from __future__ import annotations
 
+import abc
 import importlib
 import math
 from collections.abc import Mapping
@@ -65,7 +66,7 @@ LITE_STD = (128.0 / 255.0,) * 3
 # Shared interface
 
 
-class Backbone(nn.Module):
+class Backbone(nn.Module, abc.ABC):
     """Image encoder: normalised images (B, 3, H, W) -> pooled features (B, C).
 
     Attributes:
@@ -99,9 +100,9 @@ class Backbone(nn.Module):
         """The ImageNet classifier if the backbone was built with one, else None."""
         return getattr(self, self.classifier_prefix, None)
 
+    @abc.abstractmethod
     def forward_features(self, images: torch.Tensor) -> torch.Tensor:
         """Args: images (B, 3, H, W), normalised. Returns: feature map (B, C, h, w)."""
-        raise NotImplementedError
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """Global average pooled features.

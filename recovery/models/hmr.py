@@ -76,6 +76,10 @@ class HMROutput:
     cam: torch.Tensor
     thetas: torch.Tensor
 
+    def float(self) -> HMROutput:
+        """Every field in float32 (after bf16 autocast)."""
+        return HMROutput(**{k: v.float() for k, v in vars(self).items()})
+
 
 class IEFRegressor(nn.Module):
     """Iterative error feedback (HMR Sec. 3.1): ``Theta_{t+1} = Theta_t + D([phi, Theta_t])``."""
@@ -127,23 +131,9 @@ class HMRBLSM(nn.Module):
         self.backbone = build_backbone(backbone, pretrained=pretrained)
         self.regressor = IEFRegressor(self.backbone.out_channels, init, hidden, dropout, iterations)
 
-    @property
-    def input_mean(self) -> tuple[float, float, float]:
-        return tuple(self.backbone.input_mean)
-
-    @property
-    def input_std(self) -> tuple[float, float, float]:
-        return tuple(self.backbone.input_std)
-
-    def normalize(self, images: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) RGB in [0, 1] -> the backbone's input normalisation."""
-        mean = images.new_tensor(self.input_mean).view(1, 3, 1, 1)
-        std = images.new_tensor(self.input_std).view(1, 3, 1, 1)
-        return (images - mean) / std
-
     def forward(self, images: torch.Tensor) -> HMROutput:
         """Args: images (B, 3, H, W) RGB in [0, 1] (normalised here). Returns :class:`HMROutput`."""
-        thetas = self.regressor(self.backbone(self.normalize(images)))
+        thetas = self.regressor(self.backbone(self.backbone.normalize(images)))
         return self.decode(thetas)
 
     def decode(self, thetas: torch.Tensor) -> HMROutput:
