@@ -59,13 +59,16 @@ prior: $(STAMP)
 	$(BIN)/blsm mocap fit-prior out/motions --out blsm/data/pose_prior_cmu.npz --exclude 007_12 005_20
 
 # The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation
-# and the two 10k-image training halves under out/data (about 35 minutes on 2 cores; resumable).
+# and the three 10k-image training sets under out/data (about 55 minutes on 2 cores; resumable).
 recovery-data: $(STAMP)
 	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
+	test -f out/motions_train/summary.csv || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_train --fps 30 --workers 2 \
+		--clips $$(ls $(MOCAP)/*.bvh | xargs -n1 basename | sed 's/\.bvh$$//' | grep -v -e '^007_12$$' -e '^005_20$$')
 	$(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
 	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/data/train_hdri --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
+	$(BIN)/synth generate configs/synth/train_mocap.yaml --out out/data/train_mocap --workers 2 --resume
 
 # The packaged HMR-BLSM (docs/recovery.md): train (about 55 minutes on 2 cores; an interrupted run
 # continues), evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.

@@ -17,8 +17,10 @@ from typing import Any
 
 from blsm.config import config_from_dict
 from blsm.io import read_yaml
+from recovery.mesh_data import MeshDataConfig
 
 BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
+TASKS = ("hmr_blsm", "mesh", "autoencoder")
 
 
 @dataclass(frozen=True)
@@ -206,22 +208,126 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
-class RecoveryConfig:
-    """The top level of a ``configs/recovery/*.yaml`` file."""
+class MeshConfig:
+    """The spiral mesh networks (thesis ch. 4): the autoencoder of Table 4.1 and the image-to-mesh
+    network of Fig. 4.4 / Sec. 4.5.1.
 
+    Attributes:
+        channels: spiral convolution widths per level (Table 4.1: 16, 32, 64, 128).
+        latent: latent code size (128).
+        factors, rings, lengths: the operators (:class:`recovery.mesh.operators.MeshOpsSettings`).
+        cache: folder of the operator cache (keyed by the model file's hash).
+        hidden: width of the two FC layers after the backbone (the 1024-D image feature).
+        autoencoder: a pretrained autoencoder checkpoint ("" for none): its decoder and
+            normalisation initialise the image-to-mesh decoder (Configs D and F).
+        freeze_decoder: keep the decoder's weights fixed (Configs D and F).
+    """
+
+    channels: tuple[int, ...] = (16, 32, 64, 128)
+    latent: int = 128
+    factors: tuple[float, ...] = (4, 2, 2, 2)
+    rings: tuple[int, ...] = (2, 1, 1, 1)
+    lengths: tuple[int, ...] = (25, 9, 9, 9)
+    cache: str = "out/cache/mesh"
+    hidden: int = 1024
+    autoencoder: str = ""
+    freeze_decoder: bool = False
+
+    def __post_init__(self) -> None:
+        if min(self.channels) < 1 or self.latent < 1 or self.hidden < 1:
+            raise ValueError("mesh.channels, latent and hidden must be positive")
+        if not (len(self.channels) == len(self.factors) == len(self.rings) == len(self.lengths)):
+            raise ValueError("mesh.channels, factors, rings and lengths need one entry per level")
+        if self.freeze_decoder and not self.autoencoder:
+            raise ValueError("mesh.freeze_decoder needs a pretrained mesh.autoencoder")
+
+    def ops_settings(self) -> Any:
+        from recovery.mesh.operators import MeshOpsSettings
+
+        return MeshOpsSettings(factors=tuple(self.factors), rings=tuple(self.rings), lengths=tuple(self.lengths))
+
+
+@dataclass(frozen=True)
+class BeganConfig:
+    """The mesh autoencoder as a BEGAN discriminator (thesis Eqs. 4.9-4.12; Berthelot et al. 2017).
+
+    Attributes:
+        enabled: train adversarially (Configs E and F).
+        lambda_k: the k_t learning rate of Eq. 4.12 (1e-3).
+        gamma: the diversity ratio of Eq. 4.12 (0.7).
+        k0: k_0 (0); k_t is kept in [0, 1] as BEGAN does.
+        lr: Adam learning rate of the discriminator (1e-5).
+        weight_decay: of the discriminator (1e-5).
+        weight: weight of the generator's term L_AE(fake) in Eq. 4.11 (1).
+        pretrained: initialise the discriminator from ``mesh.autoencoder`` (Config F).
+        freeze: keep the discriminator's weights fixed (Config F freezes it with the decoder).
+    """
+
+    enabled: bool = False
+    lambda_k: float = 1e-3
+    gamma: float = 0.7
+    k0: float = 0.0
+    lr: float = 1e-5
+    weight_decay: float = 1e-5
+    weight: float = 1.0
+    pretrained: bool = False
+    freeze: bool = False
+
+    def __post_init__(self) -> None:
+        if self.lambda_k < 0 or self.gamma < 0 or not 0 <= self.k0 <= 1 or self.lr <= 0 or self.weight_decay < 0 or self.weight < 0:
+            raise ValueError("began: lambda_k, gamma, weight_decay, weight >= 0, k0 in [0, 1], lr > 0")
+
+
+@dataclass(frozen=True)
+class RecoveryConfig:
+    """The top level of a ``configs/recovery/*.yaml`` file.
+
+    ``task`` picks the network: ``hmr_blsm`` (HMR with the BLSM head; ``model``, ``loss``,
+    ``discriminator``), ``mesh`` (the image-to-mesh network; ``model`` gives its backbone, ``mesh``
+    the decoder, ``began`` the adversarial training; of ``loss`` it uses ``vertices`` (L_3D, Eq. 4.7),
+    ``keypoints_2d`` (L_proj, Eq. 4.8) and ``keypoints_3d``) or ``autoencoder`` (the mesh
+    autoencoder on rendered-free meshes, ``meshes``; Eq. 4.5).
+    """
+
+    task: str = "hmr_blsm"
     model: ModelConfig = field(default_factory=ModelConfig)
     data: DataConfig = field(default_factory=DataConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     discriminator: DiscriminatorConfig = field(default_factory=DiscriminatorConfig)
     optim: OptimConfig = field(default_factory=OptimConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    began: BeganConfig = field(default_factory=BeganConfig)
+    meshes: MeshDataConfig = field(default_factory=MeshDataConfig)
+
+    def __post_init__(self) -> None:
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {', '.join(TASKS)}, got {self.task!r}")
+        if self.began.enabled and self.task != "mesh":
+            raise ValueError("began.enabled needs task: mesh")
+        if self.began.pretrained and not self.mesh.autoencoder:
+            raise ValueError("began.pretrained needs a pretrained mesh.autoencoder")
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """The settings the task uses (what a checkpoint stores and a resume compares)."""
+        d = dataclasses.asdict(self)
+        unused = {"hmr_blsm": ("mesh", "began", "meshes"), "mesh": ("discriminator", "meshes"),
+                  "autoencoder": ("model", "data", "loss", "discriminator", "began")}[self.task]
+        for k in unused:
+            d.pop(k)
+        if self.task == "hmr_blsm":
+            d.pop("task")  # the layout of the first HMR-BLSM checkpoints
+        return d
 
     def model_hash(self) -> str:
-        """SHA-256 (16 hex) of the settings that define the network's parameters (``model``)."""
-        return hashlib.sha256(json.dumps(dataclasses.asdict(self.model), sort_keys=True).encode()).hexdigest()[:16]
+        """SHA-256 (16 hex) of the settings that define the network's parameters (``model``; and
+        ``mesh``'s architecture for the spiral networks)."""
+        arch: Any = dataclasses.asdict(self.model)
+        if self.task != "hmr_blsm":
+            m = self.mesh
+            arch = {"task": self.task, "model": arch if self.task == "mesh" else None,
+                    "mesh": [m.channels, m.latent, m.factors, m.rings, m.lengths, m.hidden]}
+        return hashlib.sha256(json.dumps(arch, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def load_config(path: str | Path) -> RecoveryConfig:

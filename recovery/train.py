@@ -1,5 +1,6 @@
 """``recovery train CONFIG --out DIR [--resume]``: caches, mean parameters, real poses, loaders, and the
-generic loop on HMR-BLSM's task.
+generic loop on the config's task: HMR-BLSM (``hmr_blsm``), the image-to-mesh network (``mesh``) or
+the mesh autoencoder (``autoencoder``, on meshes made without rendering).
 
 Everything the run depends on is a function of the config and its seed: the caches are built once
 (:func:`recovery.data.build_cache`), Theta_0 is the training caches' mean, the real poses are drawn
@@ -69,8 +70,31 @@ def theta0(ds: CropCache, layout: ParamLayout, crop: int) -> torch.Tensor:
                       torch.from_numpy(ds.label("shape")), cam)
 
 
-def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[HMRTask, CropCache, CropCache | None]:
+def cam_mean(ds: CropCache, crop: int) -> torch.Tensor:
+    """(3,) the mean ``(s, tx, ty)`` of the training caches' labels at the un-augmented crop."""
+    side = ds.side
+    a = torch.tensor(crop_affine((side / 2, side / 2), side / ds.context, crop), dtype=torch.float32)
+    k = a @ torch.from_numpy(ds.label("K_crop")).float()
+    return translation_to_cam(torch.from_numpy(ds.label("transl_cam")).float(), k, crop).mean(0)
+
+
+def mesh_setup(cfg: RecoveryConfig, body: Any, path: Path, log: Any = print) -> tuple[Any, torch.Tensor, torch.Tensor]:
+    """The operators and the training meshes' statistics (mean, std) of the spiral networks."""
+    from recovery.mesh.operators import mesh_operators
+    from recovery.mesh_data import MeshSource, fixed_meshes, vertex_stats
+
+    ops = mesh_operators(path, cfg.mesh.cache, cfg.mesh.ops_settings(), log=log)
+    meshes = fixed_meshes(body, MeshSource(body, cfg.meshes, "train"), cfg.meshes.stats_meshes, cfg.train.seed + 1)
+    mean, std = vertex_stats(meshes)
+    return ops, mean, std
+
+
+def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[Any, CropCache | None, CropCache | None]:
     """The task with its model, caches and real poses for ``cfg``."""
+    if cfg.task == "autoencoder":
+        return setup_autoencoder(cfg, log), None, None
+    if cfg.task == "mesh":
+        return setup_mesh(cfg, log)
     if cfg.train.threads:
         torch.set_num_threads(cfg.train.threads)
     train_dirs, val_dir = caches(cfg, log)
@@ -91,7 +115,52 @@ def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[HMRTask, CropCache, Cr
     return task, train, val
 
 
-def loaders(cfg: RecoveryConfig, task: HMRTask, train: CropCache, val: CropCache | None) -> tuple[Any, Any]:
+def setup_autoencoder(cfg: RecoveryConfig, log: Any = print) -> Any:
+    from recovery.ae_task import AutoencoderTask
+
+    if cfg.train.threads:
+        torch.set_num_threads(cfg.train.threads)
+    torch.manual_seed(cfg.train.seed)
+    path = model_file(cfg)
+    body = blsm.load(path)
+    ops, mean, std = mesh_setup(cfg, body, path, log)
+    meta = {"blsm_model_sha256": sha256_file(path), "model_hash": cfg.model_hash()}
+    return AutoencoderTask(cfg, body, ops, mean, std, meta)
+
+
+def setup_mesh(cfg: RecoveryConfig, log: Any = print) -> tuple[Any, CropCache, CropCache | None]:
+    from recovery.mesh_task import MeshTask
+
+    if cfg.train.threads:
+        torch.set_num_threads(cfg.train.threads)
+    train_dirs, val_dir = caches(cfg, log)
+    torch.manual_seed(cfg.train.seed)
+    train = CropCache(train_dirs)
+    val = CropCache([val_dir]) if val_dir is not None else None
+    path = model_file(cfg)
+    body = blsm.load(path)
+    ops, mean, std = mesh_setup(cfg, body, path, log)
+    torch.manual_seed(cfg.train.seed)  # the statistics' draws must not change the initialisation
+    meta = {"blsm_model_sha256": sha256_file(path), "model_hash": cfg.model_hash()}
+    task = MeshTask(cfg, body, ops, mean, std, cam_mean(train, cfg.data.crop), train.keypoint_names, meta)
+    return task, train, val
+
+
+def mesh_loaders(cfg: RecoveryConfig, task: Any) -> tuple[Any, Any, int]:
+    """The autoencoder's endless training batches and fixed validation meshes."""
+    from recovery.mesh_data import MeshSource, fixed_meshes, mesh_batches
+
+    bs = cfg.train.batch_size
+    source = MeshSource(task.body, cfg.meshes, "train")
+
+    def make_loader(consumed: int) -> Any:
+        return mesh_batches(source, bs, cfg.train.seed, start=consumed // bs)
+
+    val = fixed_meshes(task.body, MeshSource(task.body, cfg.meshes, "val"), cfg.meshes.val_meshes, cfg.train.seed + 2)
+    return make_loader, list(val.split(64)), len(source.people)
+
+
+def loaders(cfg: RecoveryConfig, task: Any, train: CropCache, val: CropCache | None) -> tuple[Any, Any]:
     d = cfg.data
     aug = BatchAugment(d.crop, train.context, augment_config(d.augment), cfg.train.seed, task.body.dof_mirror,
                        train.keypoint_names)
@@ -118,17 +187,25 @@ def train(cfg: RecoveryConfig, out: str | Path, resume: bool = False, log: Any =
     if last.is_file() and not resume:
         raise ValueError(f"{last}: a run exists here; use --resume to continue it or another --out")
     task, train_ds, val_ds = setup(cfg, log)
-    make_loader, val_loader = loaders(cfg, task, train_ds, val_ds)
+    if cfg.task == "autoencoder":
+        make_loader, val_loader, epoch_size = mesh_loaders(cfg, task)
+    else:
+        make_loader, val_loader = loaders(cfg, task, train_ds, val_ds)
+        epoch_size = len(train_ds)
     trainer = Trainer(task, out, make_loader, val_loader, steps=cfg.train.steps, batch_size=cfg.train.batch_size,
                       val_every=cfg.train.val_every, checkpoint_every=cfg.train.checkpoint_every,
-                      log_every=cfg.train.log_every, config=cfg.to_dict(), epoch_size=len(train_ds),
-                      device=resolve_device(cfg.train.device))
+                      log_every=cfg.train.log_every, config=cfg.to_dict(), epoch_size=epoch_size,
+                      device=resolve_device(cfg.train.device),
+                      best_metric="vertex_mm" if cfg.task == "autoencoder" else "pa_mpjpe_mm")
     if resume and last.is_file():
         trainer.resume(last)
         log(f"[recovery] resumed {last} at step {trainer.step}")
     elif resume:
         log(f"[recovery] {last}: nothing to resume; starting")
-    log(f"[recovery] train: {len(train_ds)} people from {len(cfg.data.train)} datasets; "
-        f"val: {0 if val_ds is None else min(len(val_ds), cfg.data.max_val or len(val_ds))} people; "
-        f"{cfg.model.backbone}, {cfg.train.steps} steps of {cfg.train.batch_size}")
+    if cfg.task == "autoencoder":
+        log(f"[recovery] autoencoder: meshes of {epoch_size} population members, {cfg.train.steps} steps of {cfg.train.batch_size}")
+    else:
+        log(f"[recovery] {cfg.task}: {len(train_ds)} people from {len(cfg.data.train)} datasets; "
+            f"val: {0 if val_ds is None else min(len(val_ds), cfg.data.max_val or len(val_ds))} people; "
+            f"{cfg.model.backbone}, {cfg.train.steps} steps of {cfg.train.batch_size}")
     return trainer.run()
