@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-model clean-venv
+.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-model recovery-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -76,6 +76,12 @@ recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume
 	$(BIN)/recovery evaluate out/runs/hmr_blsm_lite0/best.pt out/data/test --out out/eval/hmr_blsm_lite0
 	$(BIN)/recovery export out/runs/hmr_blsm_lite0/best.pt --out recovery/data/hmr_blsm_default.pt --report out/eval/hmr_blsm_lite0/metrics.json
+
+# Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
+# Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on
+# 2 cores); an interrupted run continues where it stopped.
+recovery-ablation: $(STAMP)
+	$(BIN)/recovery ablation configs/recovery/ablation --test out/data/test --out out/ablation
 
 clean-venv:
 	rm -rf $(VENV)

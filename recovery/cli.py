@@ -48,6 +48,11 @@ def _parser() -> argparse.ArgumentParser:
     x.add_argument("--out", required=True)
     x.add_argument("--full", action="store_true", help="keep float32 weights")
     x.add_argument("--report", help="a metrics.json to embed as the model's summary")
+    a = sub.add_parser("ablation", help="thesis Table 4.3 on our data: autoencoder vs PCA, Configs A-F (resumable)")
+    a.add_argument("configs", help="folder with autoencoder.yaml and A.yaml ... F.yaml")
+    a.add_argument("--test", required=True, help="the test dataset folder")
+    a.add_argument("--out", required=True, help="run folder (one sub-folder per config)")
+    a.add_argument("--docs", default="docs", help="where recovery_ablation.{md,json} and the figures go")
     return p
 
 
@@ -96,6 +101,16 @@ def _run(args: argparse.Namespace) -> int:
         summary = json.loads(Path(args.report).read_text()) if args.report else None
         path = export(args.checkpoint, args.out, half=not args.full, summary=summary)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")
+        return 0
+    if args.cmd == "ablation":
+        from recovery.ablation import run_ablation
+
+        try:
+            run_ablation(args.configs, args.test, args.out, args.docs)
+        except KeyboardInterrupt:
+            print("recovery: ablation interrupted; run the same command to continue", file=sys.stderr)
+            return 130
+        print(f"wrote {args.docs}/recovery_ablation.md and recovery_ablation.json")
         return 0
     raise AssertionError(args.cmd)
 

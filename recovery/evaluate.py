@@ -12,6 +12,12 @@ Every person of a ``synth`` dataset is cropped as in training (:class:`synth.dat
 - segmentation (thesis Table 6.4): the predicted mesh's six parts rasterised into the crop with
   ``K_crop`` (z-buffer) against the dataset's mask and parts of that person: foreground/background
   accuracy and foreground F1, 7-class (6 parts + background) accuracy and macro F1;
+- ``body_frame`` (thesis Sec. 4.5.2, Table 4.3): errors with the global rotation removed, as the
+  mesh network is trained: ``vertex_mm`` (mesh, pelvis-aligned), ``joint_mm`` and ``pa_joint_mm``
+  on the evaluation joints regressed from the predicted and the labels' meshes by the same keypoint
+  regressor (:mod:`recovery.mesh.operators`), and ``roughness_mm`` / ``label_roughness_mm``: the mean
+  length of the uniform Laplacian (a vertex minus the mean of its neighbours) of the predicted and
+  the labels' meshes (spiky surfaces raise it);
 - baselines on the same people: the **fixed skeleton** (one 3D skeleton for everyone, the
   generalised Procrustes mean of the people's joints, similarity-aligned to each person: the best a
   constant prediction does in PA-MPJPE) and the **mean pose** (the training set's mean parameters
@@ -36,8 +42,9 @@ from blsm.io import atomic_write
 from recovery import metrics as M
 from recovery.data import VIEWS, person_info, spread_indices
 from recovery.joints import EVAL_JOINTS, PELVIS, indices
+from recovery.mesh_data import body_frame_vertices
 from recovery.models.hmr import body_outputs
-from recovery.predictor import load_predictor
+from recovery.predictor import Predictor, load_predictor
 from recovery.raster import rasterize_labels
 from recovery.viz import face_parts, label_image, overlay, parts_overlay, side_view
 from synth.data import SynthDataset
@@ -81,6 +88,34 @@ def pose_prior_outliers(pred: torch.Tensor, label: torch.Tensor, prior_path: str
             "note": "threshold: 1st percentile of the labels' log-probability (real mocap frames)"}
 
 
+def uniform_laplacian(faces: np.ndarray, num_vertices: int) -> torch.Tensor:
+    """(V, V) sparse ``L`` with ``(L v)_i = v_i - mean of v_i's neighbours``."""
+    f = torch.as_tensor(faces, dtype=torch.long)
+    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = torch.unique(torch.cat([e, e.flip(1)]), dim=0)
+    deg = torch.bincount(e[:, 0], minlength=num_vertices).clamp(min=1).float()
+    idx = torch.cat([e.T, torch.arange(num_vertices).expand(2, -1)], dim=1)
+    val = torch.cat([-1.0 / deg[e[:, 0]], torch.ones(num_vertices)])
+    return torch.sparse_coo_tensor(idx, val, (num_vertices, num_vertices), check_invariants=True).coalesce()
+
+
+def roughness_mm(lap: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+    """(B,) mean length of the uniform Laplacian of (B, V, 3) meshes, millimetres."""
+    out = torch.stack([torch.sparse.mm(lap, v) for v in vertices.float()])
+    return out.norm(dim=-1).mean(-1) * 1000.0
+
+
+def keypoint_regressor(pr: Predictor) -> torch.Tensor:
+    """(K, V) the keypoint regressor of the predictor's BLSM model (the mesh network's own)."""
+    if pr.regressor is not None:
+        return pr.regressor
+    from recovery.config import MeshConfig
+    from recovery.mesh.operators import mesh_operators
+    from recovery.train import model_file
+
+    return torch.as_tensor(mesh_operators(model_file(pr.config), MeshConfig().cache, MeshConfig().ops_settings()).regressor)
+
+
 def _segmentation(pred_labels: np.ndarray, gt_parts: np.ndarray, gt_mask: np.ndarray) -> np.ndarray:
     gt = np.where(gt_mask, gt_parts, 0)
     return M.confusion_matrix(torch.from_numpy(pred_labels), torch.from_numpy(gt), 7).numpy()
@@ -118,18 +153,26 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     ev = torch.tensor(indices(names))
     faces = pr.body.faces.numpy()
     flabels = face_parts(faces, pr.body.vertex_parts.numpy())
-    theta0 = pr.model.regressor.init.detach()
-    mean = pr.model.decode(theta0[None, None].expand(1, 1, -1))
-    mean_kp = body_outputs(pr.body, mean.pose, mean.orient, mean.bone, mean.shape).keypoints_3d[0, ev]
+    mean_kp = pr.mean_keypoints()[ev]
+    reg = keypoint_regressor(pr)
+    lap = uniform_laplacian(faces, pr.body.num_vertices)
+    pel = ev[PELVIS]
+
+    def regressed(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        kp = torch.einsum("kv,bvc->bkc", reg, v)
+        pelvis = kp[:, pel: pel + 1]
+        return kp[:, ev] - pelvis, v - pelvis
 
     poses: dict[str, list[torch.Tensor]] = {"pred": [], "label": []}
-    rows: dict[str, list[float]] = {k: [] for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pck_0.05", "pck_0.1", "mean_pose_mpjpe_mm", "mean_pose_pa_mpjpe_mm")}
+    rows: dict[str, list[float]] = {k: [] for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pck_0.05", "pck_0.1", "mean_pose_mpjpe_mm",
+                                                     "mean_pose_pa_mpjpe_mm", "bf_joint_mm", "bf_pa_joint_mm", "bf_vertex_mm",
+                                                     "roughness_mm", "label_roughness_mm")}
     confs: list[np.ndarray] = []
     gt_joints: list[torch.Tensor] = []
     keep: dict[str, list[Any]] = {"image": [], "pred_v": [], "gt_v": [], "K": [], "transl": [], "gt_parts": [], "gt_mask": []}
     done = 0
     for b in loader:
-        pred, po = pr(b["image"], b["K_crop"])
+        po = pr(b["image"], b["K_crop"])
         gt = body_outputs(pr.body, b["pose"], b["global_orient"], b["bone"], b["shape"])
         p3, g3 = po.keypoints_3d[:, ev], b["keypoints_3d"][:, ev]
         rows["mpjpe_mm"] += (M.mpjpe(M.pelvis_aligned(p3, PELVIS), M.pelvis_aligned(g3, PELVIS)) * 1000).tolist()
@@ -138,12 +181,21 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
         vis = b["keypoints_2d"][:, ev, 2] > 0
         for thr, key in ((0.05, "pck_0.05"), (0.1, "pck_0.1")):
             rows[key] += M.pck(po.keypoints_2d[:, ev], b["keypoints_2d"][:, ev, :2], vis, thr * crop).tolist()
+        with torch.no_grad():
+            pk, pv = regressed(po.body_vertices)
+            gk, gv = regressed(body_frame_vertices(pr.body, b["pose"], b["bone"], b["shape"]))
+        rows["bf_joint_mm"] += (M.mpjpe(pk, gk) * 1000).tolist()
+        rows["bf_pa_joint_mm"] += (M.pa_mpjpe(pk, gk) * 1000).tolist()
+        rows["bf_vertex_mm"] += (M.mpjpe(pv, gv) * 1000).tolist()
+        rows["roughness_mm"] += roughness_mm(lap, po.body_vertices).tolist()
+        rows["label_roughness_mm"] += roughness_mm(lap, gv).tolist()
         mk = mean_kp.expand_as(g3)
         rows["mean_pose_mpjpe_mm"] += (M.mpjpe(mk - mk.mean(1, keepdim=True) + g3.mean(1, keepdim=True), g3) * 1000).tolist()
         rows["mean_pose_pa_mpjpe_mm"] += (M.pa_mpjpe(mk, g3) * 1000).tolist()
         gt_joints.append(g3.double())
-        poses["pred"].append(pred.pose)
-        poses["label"].append(b["pose"])
+        if po.pose is not None:
+            poses["pred"].append(po.pose)
+            poses["label"].append(b["pose"])
         verts = (po.vertices + po.transl[:, None]).numpy()
         for i in range(len(verts)):
             lab = rasterize_labels(verts[i], faces, b["K_crop"][i].numpy(), crop, crop, flabels)
@@ -163,13 +215,17 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     fixed_pa = (M.pa_mpjpe(skel.expand_as(joints), joints) * 1000).numpy()
     fixed_mp = (M.mpjpe(M.pelvis_aligned(skel.expand_as(joints), PELVIS), M.pelvis_aligned(joints, PELVIS)) * 1000).numpy()
 
-    prior_check = pose_prior_outliers(torch.cat(poses["pred"]), torch.cat(poses["label"]))
+    prior_check = pose_prior_outliers(torch.cat(poses["pred"]), torch.cat(poses["label"])) if poses["pred"] else None
     view, trunc, people = info["view"][chosen], info["truncated"][chosen], info["people"][chosen]
     all_sel = np.ones(len(chosen), bool)
     res: dict[str, Any] = {
-        "checkpoint": str(pr.path), "dataset": str(dataset), "crop": crop,
+        "checkpoint": str(pr.path), "task": pr.task, "dataset": str(dataset), "crop": crop,
         "joint_set": list(EVAL_JOINTS),
         **_summary(rows_np, conf, all_sel),
+        "body_frame": {"joint_mm": float(rows_np["bf_joint_mm"].mean()), "pa_joint_mm": float(rows_np["bf_pa_joint_mm"].mean()),
+                       "vertex_mm": float(rows_np["bf_vertex_mm"].mean()), "roughness_mm": float(rows_np["roughness_mm"].mean()),
+                       "label_roughness_mm": float(rows_np["label_roughness_mm"].mean()),
+                       "note": "global rotation removed, pelvis-aligned; joints regressed from the meshes (thesis Table 4.3 setting)"},
         "baselines": {
             "fixed_skeleton": {"pa_mpjpe_mm": float(fixed_pa.mean()), "mpjpe_mm": float(fixed_mp.mean()),
                                "note": "one skeleton for everyone: the generalised Procrustes mean of the test people's joints"},
@@ -244,7 +300,9 @@ def format_report(res: dict[str, Any]) -> str:
         f"PCK@0.05 {res['pck_0.05']:.3f}  PCK@0.1 {res['pck_0.1']:.3f}",
         f"  segmentation: fg acc {seg.get('fg_accuracy', float('nan')):.3f} F1 {seg.get('fg_f1', float('nan')):.3f}; "
         f"parts acc {seg.get('parts_accuracy', float('nan')):.3f} macro F1 {seg.get('parts_macro_f1', float('nan')):.3f}",
-        f"  poses below the prior's 1st percentile of real frames: {100 * res['pose_prior']['fraction_below']:.1f} %",
+        f"  body frame (rotation removed): joints {res['body_frame']['joint_mm']:.1f} mm, PA {res['body_frame']['pa_joint_mm']:.1f} mm, "
+        f"vertices {res['body_frame']['vertex_mm']:.1f} mm; roughness {res['body_frame']['roughness_mm']:.2f} mm (labels {res['body_frame']['label_roughness_mm']:.2f})",
+        *([f"  poses below the prior's 1st percentile of real frames: {100 * res['pose_prior']['fraction_below']:.1f} %"] if res.get("pose_prior") else []),
         f"  fixed skeleton PA-MPJPE {b['fixed_skeleton']['pa_mpjpe_mm']:.1f} mm ({100 * res['relative']['pa_mpjpe_vs_fixed_skeleton']:+.1f} %); "
         f"mean pose MPJPE {b['mean_pose']['mpjpe_mm']:.1f} mm ({100 * res['relative']['mpjpe_vs_mean_pose']:+.1f} %)",
     ]

@@ -7,10 +7,11 @@ taken as a pinhole with focal length ``--focal`` pixels (default: the image's lo
 the crop's affine map (pixel centres at integer + 0.5). The network predicts the body in that
 camera's frame (OpenCV: x right, y down, z forward; metres).
 
-Writes ``DIR/params.json`` (BLSM parameters: ``pose`` x of Eq. 6, ``angles`` radians, ``bone``,
-``shape``, ``global_orient`` axis-angle in the camera frame, ``transl`` the pelvis in the camera
-frame, the weak-perspective ``cam``, ``K`` and ``K_crop``, the box), ``DIR/mesh.obj`` (the mesh in
-the camera frame, metres) and ``DIR/overlay.png`` (the image, the mesh over it, its parts).
+Writes ``DIR/params.json`` (for HMR-BLSM the BLSM parameters: ``pose`` x of Eq. 6, ``angles``
+radians, ``bone``, ``shape``, ``global_orient`` axis-angle in the camera frame; for either network
+``transl`` the pelvis in the camera frame, the weak-perspective ``cam``, ``keypoints_3d_cam``, ``K``
+and ``K_crop``, the box), ``DIR/mesh.obj`` (the mesh in the camera frame, metres) and
+``DIR/overlay.png`` (the image, the mesh over it, its parts).
 """
 
 from __future__ import annotations
@@ -63,21 +64,27 @@ def predict(checkpoint: str | Path, image_path: str | Path, out: str | Path, box
     a = crop_affine(centre, side, crop)
     img = warp_to_crop(torch.from_numpy(image).permute(2, 0, 1).float() / 255.0, a, crop)
     k_crop = torch.tensor(a @ k, dtype=torch.float32)
-    pred, body = pr(img[None], k_crop[None])
+    res = pr(img[None], k_crop[None])
+    from blsm.joint_limits import angles_from_unconstrained
     from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
-    verts = (body.vertices[0] + body.transl[0]).numpy()
-    params = {
-        "image": str(image_path), "checkpoint": str(pr.path), "box": list(box) if box else None,
+    verts = (res.vertices[0] + res.transl[0]).numpy()
+    params: dict[str, Any] = {
+        "image": str(image_path), "checkpoint": str(pr.path), "task": pr.task, "box": list(box) if box else None,
         "crop": {"center": list(centre), "side": side, "size": crop},
         "K": k.tolist(), "K_crop": k_crop.tolist(),
-        "pose": pred.pose[0].tolist(), "angles": body.angles[0].tolist(), "bone": pred.bone[0].tolist(),
-        "shape": pred.shape[0].tolist(), "global_orient": rotation_matrix_to_axis_angle(pred.orient)[0].tolist(),
-        "transl": body.transl[0].tolist(), "cam": pred.cam[0].tolist(),
-        "keypoint_names": list(pr.body.keypoint_names),
-        "keypoints_3d_cam": (body.keypoints_3d[0] + body.transl[0]).tolist(),
-        "conventions": "OpenCV camera (x right, y down, z forward), metres, radians; pixel centres at integer + 0.5",
     }
+    if res.params is not None:
+        pred = res.params
+        params.update(pose=pred.pose[0].tolist(), angles=angles_from_unconstrained(pred.pose, pr.body.dof_limits)[0].tolist(),
+                      bone=pred.bone[0].tolist(), shape=pred.shape[0].tolist(),
+                      global_orient=rotation_matrix_to_axis_angle(pred.orient)[0].tolist(), cam=pred.cam[0].tolist())
+    params.update({
+        "transl": res.transl[0].tolist(),
+        "keypoint_names": list(pr.body.keypoint_names),
+        "keypoints_3d_cam": (res.keypoints_3d[0] + res.transl[0]).tolist(),
+        "conventions": "OpenCV camera (x right, y down, z forward), metres, radians; pixel centres at integer + 0.5",
+    })
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     faces = pr.body.faces.numpy()

@@ -1,9 +1,12 @@
 """Load a trained network for inference: a run's ``best.pt`` / ``last.pt``, an exported file, or
 ``default`` (the packaged checkpoint, :data:`DEFAULT_CHECKPOINT`).
 
-A checkpoint names the BLSM model file it was trained with by its SHA-256; loading it with another
-model file is an error (its parameters would mean other bodies), as is a file that is not a
-checkpoint or whose weights do not fit the network its config describes.
+Both recovery networks answer with one :class:`Prediction` (camera frame, metres): HMR-BLSM through
+the BLSM model on its parameters, the image-to-mesh network (``task: mesh``) through its decoded
+vertices, its rotation and camera (``recovery.models.mesh_net``) and the keypoint regressor of its
+mesh operators. A checkpoint names the BLSM model file it was trained with by its SHA-256; loading
+it with another model file is an error (its parameters would mean other bodies), as is a file that
+is not a checkpoint of either network or whose weights do not fit the network its config describes.
 """
 
 from __future__ import annotations
@@ -17,45 +20,107 @@ import torch
 import blsm
 from blsm.io import sha256_file
 from recovery.config import RecoveryConfig, config_from_json
-from recovery.models.hmr import BodyOutput, HMRBLSM, HMROutput, predict_body
+from recovery.geometry import cam_to_translation, project
+from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, predict_body
 from recovery.trainer import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_checkpoint, save_atomic
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "data" / "hmr_blsm_default.pt"
 """The packaged HMR-BLSM (``recovery export``; how it was trained: docs/recovery.md)."""
+
+TASKS = ("hmr_blsm", "mesh")
+
+
+@dataclass
+class Prediction:
+    """What either network predicts for a batch of crops (camera frame: OpenCV, metres).
+
+    Attributes:
+        vertices: (B, V, 3) the mesh relative to the pelvis, camera-frame orientation.
+        keypoints_3d: (B, K, 3) the model's keypoints, relative to the pelvis, camera-frame orientation.
+        transl: (B, 3) the pelvis' camera-frame position.
+        keypoints_2d: (B, K, 2) projected with ``K_crop`` (pixels).
+        body_vertices: (B, V, 3) the mesh in the body frame (no global rotation, pelvis at 0; thesis Sec. 4.5.2).
+        params: HMR-BLSM's parameters (None for the mesh network).
+        pose: (B, 47) the unconstrained pose x (None for the mesh network).
+    """
+
+    vertices: torch.Tensor
+    keypoints_3d: torch.Tensor
+    transl: torch.Tensor
+    keypoints_2d: torch.Tensor
+    body_vertices: torch.Tensor
+    params: HMROutput | None = None
+    pose: torch.Tensor | None = None
 
 
 @dataclass
 class Predictor:
     """A network ready for inference (eval mode) with its BLSM model and settings."""
 
-    model: HMRBLSM
+    model: torch.nn.Module
     body: torch.nn.Module
     config: RecoveryConfig
     path: Path
     info: dict[str, Any]
+    regressor: torch.Tensor | None = None  # (K, V) keypoints from vertices (mesh network)
 
     @property
     def crop(self) -> int:
         return self.config.data.crop
 
+    @property
+    def task(self) -> str:
+        return self.config.task
+
     def to(self, device: torch.device | str) -> Predictor:
         self.model.to(device)
         self.body.to(device)
+        if self.regressor is not None:
+            self.regressor = self.regressor.to(device)
         return self
 
+    def _pelvis(self) -> int:
+        return self.body.keypoint_names.index("pelvis")
+
     @torch.no_grad()
-    def __call__(self, images: torch.Tensor, k_crop: torch.Tensor) -> tuple[HMROutput, BodyOutput]:
-        """(B, 3, crop, crop) RGB in [0, 1] and (B, 3, 3) ``K_crop`` -> parameters and the body."""
+    def __call__(self, images: torch.Tensor, k_crop: torch.Tensor) -> Prediction:
+        """(B, 3, crop, crop) RGB in [0, 1] and (B, 3, 3) ``K_crop`` -> :class:`Prediction`."""
         dev = next(self.model.parameters()).device
-        pred = self.model(images.to(dev))
-        return pred, predict_body(self.body, pred, k_crop.to(dev), self.crop)
+        k_crop = k_crop.to(dev)
+        out = self.model(images.to(dev))
+        if self.task == "hmr_blsm":
+            b = predict_body(self.body, out, k_crop, self.crop)
+            rest = self.body(pose=out.pose, bone=out.bone, shape=out.shape)
+            return Prediction(vertices=b.vertices, keypoints_3d=b.keypoints_3d, transl=b.transl,
+                              keypoints_2d=b.keypoints_2d, body_vertices=rest.vertices - rest.joints[:, :1],
+                              params=out, pose=out.pose)
+        kp = torch.einsum("kv,bvc->bkc", self.regressor, out.vertices)
+        pelvis = kp[:, self._pelvis(): self._pelvis() + 1]
+        v, kp = out.vertices - pelvis, kp - pelvis
+        rt = out.rotation.transpose(1, 2)
+        transl = cam_to_translation(out.cam, k_crop, self.crop)
+        kp_cam = kp @ rt
+        return Prediction(vertices=v @ rt, keypoints_3d=kp_cam, transl=transl, keypoints_2d=project(kp_cam + transl[:, None], k_crop),
+                          body_vertices=v)
+
+    @torch.no_grad()
+    def mean_keypoints(self) -> torch.Tensor:
+        """(K, 3) the network's starting point, pelvis-relative, upright and facing the camera: HMR's
+        Theta_0 (the training means) or the mesh network's mean training mesh."""
+        if self.task == "hmr_blsm":
+            mean = self.model.decode(self.model.regressor.init.detach()[None, None].expand(1, 1, -1))
+            return body_outputs(self.body, mean.pose, mean.orient, mean.bone, mean.shape).keypoints_3d[0]
+        v = self.model.normalizer.mean
+        kp = self.regressor.to(v.dtype) @ v
+        kp = kp - kp[self._pelvis()]
+        return kp @ UPRIGHT_FACING_CAMERA.to(kp).T
 
 
 def resolve(checkpoint: str | Path) -> Path:
     return DEFAULT_CHECKPOINT if str(checkpoint) == "default" else Path(checkpoint)
 
 
-def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None) -> Predictor:
+def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None, log: Any = print) -> Predictor:
     """The network of a checkpoint (``default`` for the packaged one), in eval mode on the CPU.
 
     Args:
@@ -66,29 +131,42 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None)
         ValueError: one line naming the file: missing, corrupt, another task, made for another
             model file, or weights that do not fit its config.
     """
-    from recovery.hmr_task import build_model
     from recovery.train import model_file
 
     path = resolve(checkpoint)
     ck = read_checkpoint(path)
-    if ck.get("task") != "hmr_blsm":
-        raise ValueError(f"{path}: a checkpoint of task {ck.get('task')!r}; this command reads hmr_blsm")
-    cfg = config_from_json(ck["config"], str(path))
+    if ck.get("task") not in TASKS:
+        raise ValueError(f"{path}: a checkpoint of task {ck.get('task')!r}; this command reads {' or '.join(TASKS)}")
+    cfg = config_from_json({"task": ck["task"], **ck["config"]}, str(path))
     mpath = Path(model_path) if model_path else model_file(cfg)
     if not mpath.is_file():
         raise ValueError(f"{mpath}: the BLSM model file of {path} is missing")
     if sha256_file(mpath) != ck.get("blsm_model_sha256"):
         raise ValueError(f"{path}: made for another BLSM model file than {mpath} (SHA-256 differs)")
     body = blsm.load(mpath)
-    model = build_model(cfg, body, pretrained=False)
     state = {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"]["model"].items()}
+    regressor = None
+    if cfg.task == "hmr_blsm":
+        from recovery.hmr_task import build_model
+
+        model = build_model(cfg, body, pretrained=False)
+    else:
+        from recovery.mesh.operators import mesh_operators
+        from recovery.models.mesh_net import MeshRegressor
+
+        ops = mesh_operators(mpath, cfg.mesh.cache, cfg.mesh.ops_settings(), log=log)
+        nv = body.num_vertices
+        m = cfg.mesh
+        model = MeshRegressor(cfg.model.backbone, ops, torch.zeros(nv, 3), torch.ones(nv, 3), torch.zeros(3),
+                              pretrained=False, channels=tuple(m.channels), latent=m.latent, hidden=m.hidden)
+        regressor = torch.as_tensor(ops.regressor)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f"{path}: weights do not fit the network of its config ({str(exc).splitlines()[0][:160]})") from None
     model.eval()
     info = {k: ck.get(k) for k in ("step", "saved", "best", "train_summary")}
-    return Predictor(model=model, body=body, config=cfg, path=path, info=info)
+    return Predictor(model=model, body=body, config=cfg, path=path, info=info, regressor=regressor)
 
 
 def export(src: str | Path, dst: str | Path, half: bool = True, summary: dict[str, Any] | None = None) -> Path:

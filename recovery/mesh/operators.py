@@ -169,21 +169,30 @@ def fit_keypoint_regressor(body: torch.nn.Module, samples: int, support: int, se
     return reg, float(np.mean(errs)) if errs else 0.0
 
 
+def mesh_hierarchy(positions: np.ndarray, faces: np.ndarray, settings: MeshOpsSettings) -> MeshOperators:
+    """Levels and spirals of any mesh (no keypoint regressor: an empty (0, V) one)."""
+    ref = np.asarray(positions, dtype=np.float64)
+    faces0 = np.asarray(faces, dtype=np.int64)
+    levels = build_levels(ref, faces0, tuple(settings.factors))
+    pos, fcs, spirals, all_faces = ref, faces0, [], [faces0]
+    for i, lv in enumerate(levels):
+        spirals.append(spiral_sequences(pos, fcs, settings.rings[i], settings.lengths[i]))
+        pos, fcs = pos[lv.down], lv.faces
+        all_faces.append(fcs)
+    return MeshOperators(levels=levels, spirals=spirals, faces=all_faces, reference=ref.astype(np.float32),
+                         regressor=np.zeros((0, len(ref)), np.float32), keypoint_names=[],
+                         regressor_error_mm=0.0, model_sha256="")
+
+
 def build_operators(body: torch.nn.Module, settings: MeshOpsSettings, model_sha256: str = "") -> MeshOperators:
     """Build every operator for ``body`` (about 5 s for the packaged model)."""
     with torch.no_grad():
         ref = body(angles=reference_angles(body)[None].to(body.template.dtype)).vertices[0].double().numpy()
-    faces0 = body.faces.numpy().astype(np.int64)
-    levels = build_levels(ref, faces0, tuple(settings.factors))
-    pos, faces, spirals, all_faces = ref, faces0, [], [faces0]
-    for i, lv in enumerate(levels):
-        spirals.append(spiral_sequences(pos, faces, settings.rings[i], settings.lengths[i]))
-        pos, faces = pos[lv.down], lv.faces
-        all_faces.append(faces)
+    ops = mesh_hierarchy(ref, body.faces.numpy(), settings)
     reg, err = fit_keypoint_regressor(body, settings.regressor_samples, settings.regressor_support)
-    return MeshOperators(levels=levels, spirals=spirals, faces=all_faces, reference=ref.astype(np.float32),
-                         regressor=reg.astype(np.float32), keypoint_names=list(body.keypoint_names),
-                         regressor_error_mm=err, model_sha256=model_sha256)
+    ops.regressor, ops.keypoint_names = reg.astype(np.float32), list(body.keypoint_names)
+    ops.regressor_error_mm, ops.model_sha256 = err, model_sha256
+    return ops
 
 
 def _key(model_sha256: str, settings: MeshOpsSettings) -> str:

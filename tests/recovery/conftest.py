@@ -71,3 +71,15 @@ def run_a(tmp_path_factory, fake_root, train_cache) -> Path:
     finally:
         mp.undo()
     return out
+
+
+@pytest.fixture(scope="session")
+def mesh_cache(tmp_path_factory, model) -> Path:
+    """An operator cache holding the packaged model's default mesh operators (built once, ~10 s)."""
+    from recovery.config import MeshConfig
+    from recovery.mesh.operators import mesh_operators
+
+    root = tmp_path_factory.mktemp("mesh_ops")
+    with one_thread():
+        mesh_operators(None, root, MeshConfig().ops_settings(), log=lambda *a: None)
+    return root
