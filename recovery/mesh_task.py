@@ -166,37 +166,46 @@ class MeshTask:
             terms["proj"] = w.keypoints_2d * L.keypoint_2d_loss(kp2d, batch["keypoints_2d"], self.crop)
         if w.keypoints_3d:
             terms["kp3d"] = w.keypoints_3d * L.keypoint_3d_loss(kp @ out.rotation.transpose(1, 2), batch["keypoints_3d"])
-        if self.disc is not None and self.cfg.began.weight:
-            terms["adv"] = self.cfg.began.weight * self._ae_loss(out.vertices).mean()  # Eq. 4.11
+        self._fake_ae = None
+        if self.disc is not None:
+            self._fake_ae = self._ae_loss(out.vertices).mean()  # L_AE(fake), graph into D and the generator
+            if self.cfg.began.weight:
+                terms["adv"] = self.cfg.began.weight * self._fake_ae  # Eq. 4.11
         return terms, out, gt
 
     def training_step(self, batch: dict[str, torch.Tensor], step: int) -> dict[str, float]:
+        """One generator update and, with BEGAN, one discriminator update from the same forward
+        passes (as BEGAN does: both use the values before either update)."""
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         self.model.train()
         terms, out, gt = self.losses(batch)
         total = torch.stack(list(terms.values())).sum()
         L.check_finite({**terms, "total": total}, step, batch["key"].cpu())
-        self.opt.zero_grad(set_to_none=True)
-        total.backward()
-        if self.cfg.optim.grad_clip:
-            nn.utils.clip_grad_norm_([p for p in self.model.parameters() if p.requires_grad], self.cfg.optim.grad_clip)
-        self.opt.step()
-        self.sched.step()
+        gen_params = [p for p in self.model.parameters() if p.requires_grad]
+        d_params = [p for p in self.disc.parameters() if p.requires_grad] if self.disc is not None else []
         logs = {k: float(v.detach()) for k, v in terms.items()}
         logs["total"] = float(total.detach())
+        self.opt.zero_grad(set_to_none=True)
+        total.backward(inputs=gen_params, retain_graph=bool(d_params))
+        if self.cfg.optim.grad_clip:
+            nn.utils.clip_grad_norm_(gen_params, self.cfg.optim.grad_clip)
         if self.disc is not None:
             b = self.cfg.began
-            l_real = self._ae_loss(gt).mean()
-            l_fake = self._ae_loss(out.vertices.detach()).mean()
+            with torch.set_grad_enabled(bool(d_params)):
+                l_real = self._ae_loss(gt).mean()
+            l_fake = self._fake_ae
             d_loss = l_real - self.k * l_fake  # Eq. 4.10
             L.check_finite({"disc": d_loss}, step, batch["key"].cpu())
             if self.d_opt is not None:
                 self.d_opt.zero_grad(set_to_none=True)
-                d_loss.backward()
+                d_loss.backward(inputs=d_params)
                 self.d_opt.step()
             lr_, lf_ = float(l_real.detach()), float(l_fake.detach())
             logs.update(d_real=lr_, d_fake=lf_, convergence=began_convergence(lr_, lf_, b.gamma), k=self.k)
             self.k = began_k_update(self.k, lr_, lf_, b.lambda_k, b.gamma)  # Eq. 4.12
+        self.opt.step()
+        self.sched.step()
+        self._fake_ae = None
         logs["lr"] = float(self.sched.get_last_lr()[0])
         return logs
 
