@@ -71,13 +71,13 @@ class MeshTask:
 
     def __init__(self, cfg: RecoveryConfig, body: nn.Module, ops: MeshOperators, mean: torch.Tensor,
                  std: torch.Tensor, cam_init: torch.Tensor, keypoint_names: list[str], meta: dict[str, Any],
-                 pretrained_backbone: bool | None = None, load_pretrained_parts: bool = True) -> None:
+                 pretrained_backbone: bool | None = None) -> None:
         self.cfg, self.body, self.meta = cfg, body, meta
         if list(keypoint_names) != list(body.keypoint_names) or list(ops.keypoint_names) != list(body.keypoint_names):
             raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
         m, b = cfg.mesh, cfg.began
         self.crop = cfg.data.crop
-        ae_state = load_autoencoder_state(m.autoencoder) if (m.autoencoder and load_pretrained_parts) else None
+        ae_state = load_autoencoder_state(m.autoencoder) if m.autoencoder else None
         if ae_state is not None:
             mean, std = ae_state["normalizer.mean"], ae_state["normalizer.std"]
         self.model = MeshRegressor(cfg.model.backbone, ops, mean, std, cam_init,
@@ -87,7 +87,7 @@ class MeshTask:
             self.model.decoder.load_state_dict({k[len("decoder."):]: v for k, v in ae_state.items() if k.startswith("decoder.")})
         if m.freeze_decoder:
             self.model.decoder.requires_grad_(False)
-        self.register = torch.as_tensor(ops.regressor)  # (K, V)
+        self.regressor = torch.as_tensor(ops.regressor)  # (K, V)
         o = cfg.optim
         params = [p for p in self.model.parameters() if p.requires_grad]
         self.opt = torch.optim.Adam(params, lr=o.lr, weight_decay=o.weight_decay)
@@ -131,7 +131,7 @@ class MeshTask:
     def to(self, device: torch.device) -> None:
         self.device = device
         self.body.to(device)
-        self.register = self.register.to(device)
+        self.regressor = self.regressor.to(device)
         for mod in self.modules().values():
             mod.to(device)
         self.amp = device.type == "cuda" and self.cfg.train.bf16
@@ -142,7 +142,7 @@ class MeshTask:
     # -- geometry
     def keypoints(self, vertices: torch.Tensor) -> torch.Tensor:
         """(B, V, 3) -> (B, K, 3) through the keypoint regressor, relative to its pelvis."""
-        kp = torch.einsum("kv,bvc->bkc", self.register.to(vertices.dtype), vertices)
+        kp = torch.einsum("kv,bvc->bkc", self.regressor.to(vertices.dtype), vertices)
         return kp - kp[:, self.pelvis: self.pelvis + 1]
 
     def _ae_loss(self, v: torch.Tensor) -> torch.Tensor:
@@ -228,7 +228,7 @@ class MeshTask:
             pk, gk = self.keypoints(out.vertices)[:, self.eval_idx], self.keypoints(gt)[:, self.eval_idx]
             err["joint_mm"].append(M.mpjpe(pk, gk) * 1000)
             err["pa_mpjpe_mm"].append(M.pa_mpjpe(pk, gk) * 1000)
-            pelvis_p = torch.einsum("v,bvc->bc", self.register[self.pelvis], out.vertices)[:, None]
-            pelvis_g = torch.einsum("v,bvc->bc", self.register[self.pelvis], gt)[:, None]
+            pelvis_p = torch.einsum("v,bvc->bc", self.regressor[self.pelvis], out.vertices)[:, None]
+            pelvis_g = torch.einsum("v,bvc->bc", self.regressor[self.pelvis], gt)[:, None]
             err["vertex_mm"].append(vertex_error_mm(out.vertices - pelvis_p, gt - pelvis_g))
         return {k: float(torch.cat(v).mean()) for k, v in err.items() if v}

@@ -20,6 +20,7 @@ import csv
 import json
 import math
 import os
+import pickle
 import signal
 import sys
 import time
@@ -76,9 +77,17 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise ValueError(f"{path}: no such checkpoint")
     try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # noqa: BLE001 - any unpickling failure means a corrupt file
-        raise ValueError(f"{path}: corrupt checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from None
+        # weights_only: tensors, numbers, strings and containers only; a file that needs arbitrary
+        # unpickling (code) is refused, never run
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to read means a corrupt or refused file
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        code = next((ln for ln in lines if "Unsupported global" in ln or "GLOBAL" in ln), None)
+        if isinstance(exc, pickle.UnpicklingError) and code is not None:
+            raise ValueError(f"{path}: refused: loading it would run code or unknown types ({code[:120]})") from None
+        # random bytes also fail the weights-only unpickler ("Unsupported operand"): that is corruption
+        what = next((ln for ln in lines if "Unsupported operand" in ln), lines[0] if lines else "")
+        raise ValueError(f"{path}: corrupt checkpoint ({type(exc).__name__}: {what[:120]})") from None
     if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"{path}: not a {CHECKPOINT_FORMAT!r} file")
     if int(ck.get("version", -1)) != CHECKPOINT_VERSION:

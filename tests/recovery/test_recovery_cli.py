@@ -216,8 +216,12 @@ def test_corrupt_checkpoints(run_a, fake_root, image, tmp_path, capsys):
     truncated.write_bytes((run_a / "last.pt").read_bytes()[: 1 << 20])
     other = tmp_path / "other.pt"
     torch.save({"weights": torch.zeros(2)}, other)
+    code = tmp_path / "code.pt"  # unpickling would call a function: refused, never run
+    marker = tmp_path / "ran"
+    torch.save({"format": "recovery-checkpoint", "x": _Runs(str(marker))}, code)
     out = tmp_path / "o"
     for path, why in (
+        (code, "refused: loading it would run code"),
         (garbage, "corrupt checkpoint"),
         (truncated, "corrupt checkpoint"),
         (other, "not a 'recovery-checkpoint' file"),
@@ -226,7 +230,17 @@ def test_corrupt_checkpoints(run_a, fake_root, image, tmp_path, capsys):
         _error(capsys, ["evaluate", str(path), str(fake_root), "--out", str(out)], f"{path}: {why}")
         _error(capsys, ["predict", str(path), str(image), "--out", str(out)], f"{path}: {why}")
         _error(capsys, ["export", str(path), "--out", str(tmp_path / "e.pt")], f"{path}: {why}")
-    assert not out.exists() and not (tmp_path / "e.pt").exists()
+    assert not out.exists() and not (tmp_path / "e.pt").exists() and not marker.exists()
+
+
+class _Runs:
+    """Pickles as a call of ``pathlib.Path.touch`` (what a malicious checkpoint could do)."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __reduce__(self):
+        return (Path.touch, (Path(self.path),))
 
 
 def test_resume_from_a_corrupt_checkpoint(run_copy, run_a, capsys):
