@@ -93,6 +93,8 @@ def validate(data: ModelData, where: str = "model") -> None:
             raise ValueError(f"{where}: array {key!r} has dtype {arr.dtype}, expected kind {kind!r}")
         if arr.ndim != len(shape):
             raise ValueError(f"{where}: array {key!r} has shape {arr.shape}, expected {shape}")
+        if kind == "f" and not np.isfinite(arr).all():
+            raise ValueError(f"{where}: array {key!r} has NaN or infinite values")
         for size, name in zip(arr.shape, shape):
             if dims.setdefault(name, size) != size:
                 raise ValueError(
@@ -114,15 +116,16 @@ def validate(data: ModelData, where: str = "model") -> None:
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
+def atomic_write(path: str | Path, mode: str = "wb", tag: str = "") -> Iterator[IO[Any]]:
     """Open a hidden temporary file beside ``path``; rename it to ``path`` only on success.
 
     The parent folder is created. On any error the temporary file is removed and ``path`` is left
-    as it was, so a reader never sees a partial file.
+    as it was, so a reader never sees a partial file. ``tag`` (e.g. a writer's host and pid) goes
+    into the temporary name, ``.<name>.<tag>.tmp``, so that two writers never share one.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
+    tmp = path.with_name(f".{path.name}.{tag}.tmp" if tag else f".{path.name}.tmp")
     try:
         with open(tmp, mode) as fh:
             yield fh
@@ -148,10 +151,14 @@ def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise ValueError(f"{path}: no such {what} file")
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        npz = np.load(path, allow_pickle=False)
+        if not isinstance(npz, np.lib.npyio.NpzFile):  # a bare .npy array
+            raise ValueError("a single .npy array, not an .npz archive")
+        with npz:
             return {k: npz[k] for k in npz.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, zlib.error) as exc:
-        raise ValueError(f"{path}: not a readable .npz {what} file ({exc})") from None
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ValueError(f"{path}: not a readable .npz {what} file ({msg})") from None
 
 
 def read_yaml(path: str | Path, what: str) -> Any:
@@ -160,9 +167,13 @@ def read_yaml(path: str | Path, what: str) -> Any:
 
     path = Path(path)
     try:
-        return yaml.safe_load(path.read_text())
+        # utf-8-sig: a leading byte-order mark (some Windows editors write one) is not content.
+        return yaml.safe_load(path.read_bytes().decode("utf-8-sig"))
     except OSError as exc:
         raise ValueError(f"{path}: cannot read {what} ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        bad = exc.object[exc.start : exc.start + 1].hex()
+        raise ValueError(f"{path}: not UTF-8 text (byte 0x{bad} at offset {exc.start}; save the {what} as UTF-8)") from None
     except yaml.YAMLError as exc:
         raise ValueError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
 
@@ -189,13 +200,18 @@ def read_model(path: str | Path) -> ModelData:
     raw = read_npz(path, "model")
     if str(raw.get("format", "")) != FORMAT:
         raise ValueError(f"{path}: not a BLSM model file (format={raw.get('format')!r})")
-    version = int(raw["format_version"])
+    try:
+        version = int(raw["format_version"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{path}: bad or missing format_version") from None
     if version != FORMAT_VERSION:
         raise ValueError(f"{path}: format_version {version} is not supported (expected 1)")
     try:
         meta = json.loads(str(raw["meta_json"]))
     except (KeyError, json.JSONDecodeError) as exc:
-        raise ValueError(f"{path}: bad or missing meta_json ({exc})") from exc
+        raise ValueError(f"{path}: bad or missing meta_json ({exc})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: meta_json must hold a JSON object")
     if "dof_table_yaml" not in raw:
         raise ValueError(f"{path}: missing dof_table_yaml")
     arrays = {k: v for k, v in raw.items() if k in _ARRAYS}

@@ -56,12 +56,23 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def error_line(exc: BaseException) -> str:
+    """The one-line message of ``exc``. An error raised in a DataLoader worker comes back as torch's
+    "Caught ValueError in DataLoader worker process 0." followed by the worker's traceback; its own
+    message (which names the shard and sample) is the traceback's last line."""
+    lines = [ln for ln in str(exc).splitlines() if ln.strip()]
+    if len(lines) > 1 and "DataLoader worker" in lines[0]:
+        last, prefix = lines[-1], f"{type(exc).__name__}: "
+        return last[len(prefix):] if last.startswith(prefix) else last
+    return lines[0] if lines else type(exc).__name__
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return _run(args)
     except (ValueError, FloatingPointError) as exc:
-        print(f"recovery: error: {exc}", file=sys.stderr)
+        print(f"recovery: error: {error_line(exc)}", file=sys.stderr)
         return 2
 
 

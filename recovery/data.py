@@ -80,12 +80,26 @@ def build_cache(dataset: str | Path, out: str | Path, crop: int, context: float,
             return out
         log(f"[recovery] {out}: cache is stale (dataset or crop changed); rebuilding")
     ds = SynthDataset(dataset, crop=side, augment=None, box_scale=box_scale)
-    n, k = len(ds), len(ds.keypoint_names)
+    n = len(ds)
     if n == 0:
         raise ValueError(f"{dataset}: the dataset holds no usable person")
     tmp = out.with_name(f".{out.name}.tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
+    try:
+        _write_cache(ds, tmp, key, dataset, crop, context, side, workers, log)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)  # a bad sample found while cropping leaves nothing
+        raise
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)
+    log(f"[recovery] cache {out}: {n} people, {side} px")
+    return out
+
+
+def _write_cache(ds: SynthDataset, tmp: Path, key: dict[str, Any], dataset: Path, crop: int, context: float,
+                 side: int, workers: int, log: Any) -> None:
+    n = len(ds)
     images = np.lib.format.open_memmap(tmp / "images.npy", "w+", np.uint8, (n, side, side, 3))
     masks = np.lib.format.open_memmap(tmp / "masks.npy", "w+", np.uint8, (n, side, side))
     parts = np.lib.format.open_memmap(tmp / "parts.npy", "w+", np.uint8, (n, side, side))
@@ -113,10 +127,6 @@ def build_cache(dataset: str | Path, out: str | Path, crop: int, context: float,
     meta = {**key, "dataset": str(dataset), "count": n, "crop": crop, "context": context,
             "keypoint_names": ds.keypoint_names}
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
-    log(f"[recovery] cache {out}: {n} people, {side} px")
-    return out
 
 
 def _stack(items: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:

@@ -32,6 +32,7 @@ from synth.data import crop_affine, warp_to_crop
 def read_image(path: str | Path) -> np.ndarray:
     """(H, W, 3) uint8 RGB of an image file; a ValueError names the file when it cannot be read."""
     from PIL import Image, UnidentifiedImageError
+    from PIL.Image import DecompressionBombError
 
     path = Path(path)
     if not path.is_file():
@@ -39,7 +40,7 @@ def read_image(path: str | Path) -> np.ndarray:
     try:
         with Image.open(path) as im:
             return np.array(im.convert("RGB"))  # writable: torch.from_numpy warns on a read-only array
-    except (UnidentifiedImageError, OSError) as exc:
+    except (UnidentifiedImageError, OSError, DecompressionBombError) as exc:  # bomb: > 179 Mpixels claimed
         raise ValueError(f"{path}: not a readable image ({exc})") from None
 
 
@@ -65,8 +66,9 @@ def predict(checkpoint: str | Path, image_path: str | Path, out: str | Path, box
     img = warp_to_crop(torch.from_numpy(image).permute(2, 0, 1).float() / 255.0, a, crop)
     k_crop = torch.tensor(a @ k, dtype=torch.float32)
     res = pr(img[None], k_crop[None])
-    from blsm.joint_limits import angles_from_unconstrained
     from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+
+    from blsm.joint_limits import angles_from_unconstrained
 
     verts = (res.vertices[0] + res.transl[0]).numpy()
     params: dict[str, Any] = {

@@ -28,6 +28,9 @@ import numpy as np
 from blsm.camera import Camera, look_at_camera
 
 SENSOR_WIDTH_MM = 36.0
+MAX_IMAGE_SIDE = 8192
+"""Pixels, either side of the image: beyond it Mitsuba's film and the label buffers of one image
+take tens of GiB (see ``synth.config.render_memory_bytes``)."""
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,10 @@ class CameraConfig:
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
+        if max(self.width, self.height) > MAX_IMAGE_SIDE:
+            raise ValueError(
+                f"camera size {self.width}x{self.height} is over the limit of {MAX_IMAGE_SIDE} px a side"
+            )
         for name in ("focal_mm", "yaw_deg", "elevation_deg", "fill"):
             lo, hi = getattr(self, name)
             if not lo <= hi:

@@ -5,8 +5,8 @@
     synth validate DIR
     synth export DIR --format spin|coco --out DIR2 [--overwrite]
 
-Errors in input (a config key, a scan, a folder) are one line, ``synth: error: ...``, exit status 2;
-a failed validation exits with status 1.
+Errors in input (a config key, a scan, a folder, an output folder another run is writing, a full
+disk) are one line, ``synth: error: ...``, exit status 2; a failed validation exits with status 1.
 """
 
 from __future__ import annotations
@@ -97,6 +97,10 @@ def main(argv: list[str] | None = None) -> int:
     except RuntimeError as exc:
         print(f"synth: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 1
+    except OSError as exc:  # a file that cannot be read or written: still one line naming it
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"synth: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("synth: interrupted; finished shards are kept, continue with --resume", file=sys.stderr)
         return 130

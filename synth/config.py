@@ -4,17 +4,50 @@ Every key must be a field of its dataclass (an unknown or misspelt key is an err
 the key's path, e.g. ``configs/synth/x.yaml: camera.focal: unknown key (known: focal_mm, ...)``);
 values are checked against the field types (int, float, bool, str, tuples of them, nested
 dataclasses) and then by each dataclass's own ``__post_init__``. Omitted keys keep their defaults,
-so an empty file is the embedded default configuration.
+so an empty file is the embedded default configuration. The file must be UTF-8 (a leading
+byte-order mark is allowed).
+
+Limits, checked when the config is loaded, before any work:
+
+- ``camera.width`` and ``camera.height`` at most ``MAX_IMAGE_SIDE`` = 8192 px;
+- the estimated memory of rendering one image, :func:`render_memory_bytes` (per worker process),
+  at most ``MAX_RENDER_GIB`` = 32 GiB (the environment variable ``SYNTH_MAX_RENDER_GIB`` raises or
+  lowers it: it is a property of the machine, not of the dataset, so it is not a config key);
+- ``num`` at most ``MAX_SAMPLES`` = 10^9 (sample keys have nine digits).
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from blsm.config import config_from_dict as from_dict
 from blsm.io import read_yaml
-from synth.camera import CameraConfig
+from synth.camera import MAX_IMAGE_SIDE, CameraConfig
+
+MAX_SAMPLES = 10**9
+MAX_RENDER_GIB = 32.0
+RENDER_BYTES_PER_SAMPLE = 256
+"""Mitsuba's wavefront path tracer keeps every sample of an image in flight at once: a ray, its
+throughput and radiance, the random generator's state and a surface interaction, about 60 floats."""
+LABEL_BYTES_PER_PIXEL = 256
+"""The film, the one-sample label pass (depth, position, face) and the label arrays made from it."""
+
+
+def render_memory_bytes(width: int, height: int, spp: int) -> int:
+    """Estimated peak memory (bytes) of one image in one worker: ``W * H * (spp *
+    RENDER_BYTES_PER_SAMPLE + LABEL_BYTES_PER_PIXEL)``; 256 x 256 at 16 spp is about 0.3 GiB."""
+    return width * height * (spp * RENDER_BYTES_PER_SAMPLE + LABEL_BYTES_PER_PIXEL)
+
+
+def max_render_gib() -> float:
+    """The memory limit of :func:`render_memory_bytes`, GiB (``SYNTH_MAX_RENDER_GIB`` overrides it)."""
+    env = os.environ.get("SYNTH_MAX_RENDER_GIB", "")
+    try:
+        return float(env) if env else MAX_RENDER_GIB
+    except ValueError:
+        raise ValueError(f"SYNTH_MAX_RENDER_GIB must be a number of GiB, got {env!r}") from None
 
 
 @dataclass(frozen=True)
@@ -160,10 +193,19 @@ class GeneratorConfig:
             raise ValueError(f"seed must be non-negative, got {self.seed}")
         if self.num < 1:
             raise ValueError(f"num must be positive, got {self.num}")
+        if self.num > MAX_SAMPLES:
+            raise ValueError(f"num must be at most {MAX_SAMPLES} (sample keys have nine digits), got {self.num}")
         if self.pipeline not in ("rigged", "raw", "blsm"):
             raise ValueError(f"pipeline must be rigged, raw or blsm, got {self.pipeline!r}")
         if self.subdivide and self.pipeline != "blsm":
             raise ValueError("subdivide applies to the blsm pipeline only")
+        need, limit = render_memory_bytes(self.camera.width, self.camera.height, self.render.spp) / 2**30, max_render_gib()
+        if need > limit:
+            raise ValueError(
+                f"rendering {self.camera.width}x{self.camera.height} px at {self.render.spp} spp needs about "
+                f"{need:.1f} GiB per worker, over the limit of {limit:g} GiB (SYNTH_MAX_RENDER_GIB; "
+                f"images are at most {MAX_IMAGE_SIDE} px a side)"
+            )
 
 
 def load_config(path: str | Path) -> GeneratorConfig:

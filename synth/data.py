@@ -37,6 +37,7 @@ import functools
 import math
 import os
 import tarfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,7 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 from kornia.geometry.transform import warp_affine
 
+from blsm.io import sha256_file
 from blsm.skeleton import mirror_name
 from synth import format as fmt
 from synth.shards import FORMAT as SHARDS_FORMAT
@@ -201,11 +203,13 @@ class DatasetIndex:
 
     Raises:
         ValueError: one line naming the file, on a missing folder or manifest, a manifest of another
-            format, an incomplete run (unless ``allow_incomplete``), a missing or truncated shard, or
+            format, an incomplete run (unless ``allow_incomplete``), a missing or truncated shard, a
+            shard whose SHA-256 differs from the manifest's (with ``verify``; it reads every byte), or
             a sample without the ``required`` members.
     """
 
-    def __init__(self, path: str | Path, allow_incomplete: bool = False, required: Sequence[str] = _FIELDS):
+    def __init__(self, path: str | Path, allow_incomplete: bool = False, required: Sequence[str] = _FIELDS,
+                 verify: bool = False):
         self.root, self.required = Path(path), tuple(required)
         man_path = self.root / MANIFEST
         if not man_path.is_file():
@@ -218,10 +222,18 @@ class DatasetIndex:
             raise ValueError(f"{man_path}: not a {SHARDS_FORMAT!r} manifest")
         if not man.get("complete") and not allow_incomplete:
             raise ValueError(f"{man_path}: the dataset is incomplete (generation unfinished)")
+        shards = man.get("shards") or {}
+        if not isinstance(shards, dict) or not all(
+            isinstance(e, dict) and isinstance(e.get("samples", -1), int) for e in shards.values()
+        ):
+            raise ValueError(f"{man_path}: 'shards' must map each shard's name to its entry")
         self.shards: list[Path] = []
         self.samples: list[tuple[int, str, dict[str, tuple[int, int]]]] = []
-        for name, entry in sorted((man.get("shards") or {}).items()):
-            self._index_shard(len(self.shards), self.root / name, int(entry.get("samples", -1)))
+        for name, entry in sorted(shards.items()):
+            path = self.root / name
+            if verify and path.is_file() and sha256_file(path) != entry.get("sha256"):
+                raise ValueError(f"{path}: SHA-256 differs from the manifest (damaged or edited)")
+            self._index_shard(len(self.shards), path, int(entry.get("samples", -1)))
         self._pid = -1
         self._files: dict[int, BinaryIO] = {}
 
@@ -287,6 +299,24 @@ class DatasetIndex:
 
     def __getstate__(self) -> dict[str, Any]:
         return {**self.__dict__, "_files": {}, "_pid": -1}
+
+
+def check_png_crc(data: bytes, what: str) -> None:
+    """Check the CRC of every chunk of PNG bytes (a ValueError naming ``what`` on a mismatch).
+
+    PIL does not check the image data's CRCs and stops inflating once it has every row, so a
+    damaged byte there can decode, silently, into wrong pixels.
+    """
+    if not data.startswith(b"\x89PNG\r\n\x1a\n"):
+        return  # not a PNG at all: decoding says so
+    pos = 8
+    while pos + 12 <= len(data):
+        n = int.from_bytes(data[pos : pos + 4], "big")
+        body, crc = data[pos + 4 : pos + 8 + n], data[pos + 8 + n : pos + 12 + n]
+        if len(crc) < 4 or zlib.crc32(body).to_bytes(4, "big") != crc:
+            chunk = body[:4].decode("latin-1")
+            raise ValueError(f"{what}: not a readable PNG (bad CRC in its {chunk!r} chunk)")
+        pos += 12 + n
 
 
 @functools.cache
@@ -465,6 +495,8 @@ class SynthDataset(torch.utils.data.Dataset):
         where = self.index.where(s)
         raw = self.index.read(s, _FIELDS)
         meta = fmt.decode_json(raw["json"], f"{where}.json")
+        for name in ("rgb.png", "mask.png", "parts.png"):
+            check_png_crc(raw[name], f"{where}.{name}")
         rgb = fmt.decode_png(raw["rgb.png"], f"{where}.rgb.png")
         mask = fmt.decode_png(raw["mask.png"], f"{where}.mask.png")
         parts = fmt.decode_png(raw["parts.png"], f"{where}.parts.png")

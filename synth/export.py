@@ -31,7 +31,8 @@ with x = y = 0), ``num_keypoints`` (v > 0), ``bbox`` ``[x, y, w, h]`` of the vis
 edges, ``area`` its pixel count, ``iscrowd`` 0 and ``segmentation`` the person's mask as
 uncompressed column-major RLE ``{"counts": [...], "size": [h, w]}`` (pycocotools' layout).
 
-Every label is read and checked before anything is written, so a bad sample leaves no output.
+Every shard's SHA-256 is checked against the manifest (the images are copied as they are) and every
+label is read and checked before anything is written, so a bad sample leaves no output.
 The images are copied through a staging folder and moved into ``OUT/images`` only when all are
 there; the annotation file is written last and atomically (:func:`blsm.io.atomic_write`): its
 presence means a complete export. An existing one is an error unless ``overwrite``.
@@ -206,7 +207,7 @@ def export(
     """
     if fmt not in FORMATS:
         raise ValueError(f"unknown export format {fmt!r}; choose one of {list(FORMATS)}")
-    index = DatasetIndex(path)
+    index = DatasetIndex(path, verify=True)  # the images are copied as they are: check their bytes
     out = Path(out)
     target = out / (SPIN_FILE if fmt == "spin" else COCO_FILE)
     if target.exists() and not overwrite:

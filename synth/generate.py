@@ -5,6 +5,10 @@ and then the shards. A sample's randomness is ``sample_rng(seed, index)`` only, 
 make any sample, and a resumed run makes the same dataset as an uninterrupted one. Each worker
 process loads the model, subjects and backgrounds once and keeps one Mitsuba scene per mesh
 topology, updated in place per image; a worker is replaced after ``render.recycle_after`` images.
+
+Before any work, every input file is opened and checked (:func:`check_inputs`) and the output
+folder is locked for this writer (:mod:`synth.lock`); bad input leaves no new file or folder, and a
+failed write (a full disk) keeps the finished shards for ``--resume``.
 """
 
 from __future__ import annotations
@@ -31,10 +35,11 @@ from blsm.io import sha256_file
 from synth import backgrounds as bg
 from synth import format as fmt
 from synth import labels as lab
+from synth import lock as out_lock
 from synth.camera import outline_index, sample_camera
 from synth.config import GeneratorConfig
 from synth.render import PeopleRenderer, RenderMesh
-from synth.shards import ShardWriter, SkipSample, sample_rng, shard_name
+from synth.shards import ShardWriter, SkipSample, WriteError, sample_rng, shard_name
 from synth.subjects import Subject, anny_subject, load_subject, model_fingerprint, pose_subject, save_subject
 
 SUBJECTS = "subjects"
@@ -388,8 +393,9 @@ class SampleMaker:
 
 
 def _l(a: Any) -> Any:
-    """Array to nested lists of Python floats rounded to 1e-6 (stable JSON across runs)."""
-    return np.round(np.asarray(a, dtype=np.float64), 6).tolist()
+    """Array to nested lists of Python floats rounded to 1e-6 (stable JSON across runs; the
+    precision the validator allows for is stated in :mod:`synth.format`)."""
+    return fmt.json_round(a)
 
 
 def _bone_lengths(rest_joints: np.ndarray, keypoints: np.ndarray, model: Any) -> np.ndarray:
@@ -495,24 +501,93 @@ def generate(
         on_image: called in this process as ``on_image(images_done)`` after each image
             (benchmarks).
 
+    Every input file (backgrounds, scans, poses) is opened and checked first; then the folder is
+    locked (:mod:`synth.lock`: one writer per folder; temporary files carry the writer's tag). Bad
+    input leaves no new file or folder behind.
+
     Raises:
-        ValueError: bad input (config, subjects, backgrounds, poses), before any shard is written.
+        ValueError: bad input (config, subjects, backgrounds, poses), before any shard is written;
+            the folder held by another run; a failed write (:class:`synth.shards.WriteError`, e.g.
+            a full disk), with the finished shards kept for ``--resume``.
         RuntimeError: a sample failed (without ``cfg.skip_bad``); finished shards are kept.
     """
     import blsm
 
     out = Path(out)
     writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions())
-    todo, done, skipped = writer.pending(resume)
-    # Check the pose and background sources before anything is made.
+    writer.pending(resume)  # fail fast (a dataset already there); checked again under the lock
+    model = blsm.load()
+    check_inputs(cfg, model)
+    variant = choose_variant(cfg)
+    created = _first_missing(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        lock = out_lock.acquire(out, warn=_log, stale_files=writer.temporary_files)
+    except OSError as exc:
+        _remove(created)
+        raise WriteError.of(Path(exc.filename or out), exc) from None
+    except BaseException:
+        _remove(created)
+        raise
+    with lock:
+        writer.tag = lock.tag
+        new_subjects = not (out / SUBJECTS).exists()
+        try:
+            todo, done, skipped = writer.pending(resume)
+            prepare_subjects(cfg, out, model)
+        except (ValueError, OSError) as exc:
+            # Bad input found before any shard: leave the folder as it was.
+            lock.release()
+            _remove(created if created is not None else out / SUBJECTS if new_subjects else None)
+            if isinstance(exc, OSError):
+                raise WriteError.of(Path(exc.filename or out / SUBJECTS), exc) from None
+            raise
+        return _run(cfg, out, writer, (todo, done, skipped), variant, workers, progress, stop_after, on_image)
+
+
+def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
+    """Open and check every input file of a run before any work: the pose source, every background
+    file (decoded as the workers will) and every scan folder; a ValueError names the first bad one."""
     PoseSource(cfg)
     b = cfg.background
     if b.kind == "hdri":
-        bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
+        bg.check_files(bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude), b.kind, b.env_width)
     elif b.kind == "images":
-        bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
-    variant = choose_variant(cfg)
-    prepare_subjects(cfg, out, blsm.load())
+        bg.check_files(bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude), b.kind, b.env_width)
+    if cfg.subjects.source == "folder":
+        from synth.scans import check_scans
+
+        check_scans(model, Path(cfg.subjects.folder), skip_bad=cfg.skip_bad)
+
+
+def _first_missing(path: Path) -> Path | None:
+    """The outermost folder of ``path`` that does not exist yet (what ``mkdir -p`` would make)."""
+    missing = None
+    for p in (path, *path.parents):
+        if p.exists():
+            break
+        missing = p
+    return missing
+
+
+def _remove(path: Path | None) -> None:
+    if path is not None and path.exists():
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def _run(
+    cfg: GeneratorConfig,
+    out: Path,
+    writer: ShardWriter,
+    plan: tuple[list[int], dict[str, Any], list[dict[str, Any]]],
+    variant: str,
+    workers: int,
+    progress: bool,
+    stop_after: int | None,
+    on_image: Callable[[int], None] | None,
+) -> dict[str, Any]:
+    """The shards of :func:`generate`, once its inputs are checked and its lock is held."""
+    todo, done, skipped = plan
     if stop_after is not None:
         todo = todo[:stop_after]
     indices = [i for s in todo for i in writer.indices(s)]

@@ -409,6 +409,57 @@ def import_scan(model: BLSM, folder: str | Path, texture_size: int = 1024) -> Su
     return rig_subject(model, folder.name, vertices, faces, uv, faces_uv, texture, reg, meta)
 
 
+def check_scan(model: BLSM, folder: str | Path) -> None:
+    """Open and check a subject folder's files without the slow work of :func:`import_scan` (no
+    fitting, baking or rigging): the scan mesh and its texture or colours, the registration file
+    (parameters read and checked; a registration mesh loaded and its topology checked)."""
+    folder = Path(folder)
+    scan = _one(folder, "scan", SCAN_SUFFIXES)
+    mesh = load_mesh(scan)
+    visual = mesh.visual
+    mat = getattr(visual, "material", None)
+    image = getattr(mat, "image", None)
+    image = getattr(mat, "baseColorTexture", None) if image is None else image
+    has_uv = getattr(visual, "uv", None) is not None
+    if not (has_uv and image is not None) and getattr(visual, "kind", None) != "vertex":
+        if image is not None:
+            raise ValueError(f"{scan}: has a texture but no UVs")
+        raise ValueError(f"{scan}: no texture or vertex colours (a textured mesh with UVs, or vertex colours)")
+    path = _one(folder, "registration", PARAM_SUFFIXES + MESH_SUFFIXES)
+    if path.suffix in PARAM_SUFFIXES:
+        _read_parameters(model, path)
+        return
+    reg = load_mesh(path, keep_order=True)
+    if len(reg.vertices) != model.num_vertices or not np.array_equal(np.asarray(reg.faces), model.faces.numpy()):
+        raise ValueError(f"{path}: not in BLSM topology ({len(reg.vertices)} vertices, the model has {model.num_vertices})")
+
+
+def check_scans(model: BLSM, root: str | Path, skip_bad: bool = False) -> list[tuple[str, str]]:
+    """:func:`check_scan` on every subject folder under ``root``, before any work starts.
+
+    Returns:
+        The bad folders as (name, reason) pairs with ``skip_bad`` (an error when every folder is
+        bad); without it the first bad folder raises its ValueError.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root}: no such scans folder")
+    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not folders:
+        raise ValueError(f"{root}: no subject folders")
+    bad = []
+    for folder in folders:
+        try:
+            check_scan(model, folder)
+        except ValueError as exc:
+            if not skip_bad:
+                raise
+            bad.append((folder.name, str(exc)))
+    if len(bad) == len(folders):
+        raise ValueError(f"{root}: no usable scan ({bad[0][1]})")
+    return bad
+
+
 def import_scans(
     model: BLSM, root: str | Path, skip_bad: bool = False, texture_size: int = 1024
 ) -> tuple[list[Subject], list[tuple[str, str]]]:

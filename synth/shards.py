@@ -8,7 +8,10 @@ named ``<key>.<field>`` (``000000042.rgb.png``, ``000000042.json``, ...), the We
 Guarantees:
 
 - A shard appears only when complete: it is written to a hidden temporary file beside it
-  (``.shard-000000.tar.tmp``) and renamed.
+  (``.shard-000000.tar.<tag>.tmp``, the tag naming its writer, see :mod:`synth.lock`) and renamed.
+- A write that fails (a full disk: ``ENOSPC``) removes its temporary file and stops the run with
+  a ValueError naming the path (:class:`WriteError`); the shards already finished and the manifest
+  listing them stay valid, so ``--resume`` after freeing space makes the same bytes.
 - Shards are as reproducible as their samples: members are written in sorted order with fixed
   metadata (mtime 0, uid/gid 0, mode 0644), and a sample's randomness comes only from
   :func:`sample_rng` with ``(seed, index)``, so equal sample bytes give equal shard bytes and a
@@ -21,6 +24,8 @@ Guarantees:
 
 from __future__ import annotations
 
+import errno
+import glob
 import io
 import json
 import tarfile
@@ -40,6 +45,15 @@ VERSION = 1
 
 class SkipSample(Exception):
     """Raised by a ``make_sample`` callable to leave that sample out (the message is the reason)."""
+
+
+class WriteError(ValueError):
+    """Writing the dataset failed (a full disk, a read-only folder): one line naming the path."""
+
+    @classmethod
+    def of(cls, path: Path, exc: OSError) -> WriteError:
+        why = "no space left on device" if exc.errno in (errno.ENOSPC, errno.EDQUOT) else (exc.strerror or str(exc))
+        return cls(f"{path}: cannot write ({why}); the finished shards are kept, continue with --resume")
 
 
 def sample_key(index: int) -> str:
@@ -62,8 +76,8 @@ def sample_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(index)])))
 
 
-def _write_json_atomic(path: Path, obj: Any) -> None:
-    with atomic_write(path, "w") as f:
+def _write_json_atomic(path: Path, obj: Any, tag: str = "") -> None:
+    with atomic_write(path, "w", tag) as f:
         f.write(json.dumps(obj, indent=1, sort_keys=True) + "\n")
 
 
@@ -77,18 +91,19 @@ def _add_member(tar: tarfile.TarFile, name: str, data: bytes) -> None:
     tar.addfile(info, io.BytesIO(data))
 
 
-def write_shard(path: str | Path, samples: Iterable[tuple[int, dict[str, bytes]]]) -> str:
+def write_shard(path: str | Path, samples: Iterable[tuple[int, dict[str, bytes]]], tag: str = "") -> str:
     """Write one shard atomically; return its SHA-256.
 
     Args:
-        path: the final ``.tar`` path; the data goes to a hidden ``.tmp`` file first.
+        path: the final ``.tar`` path; the data goes to a hidden ``.<tag>.tmp`` file first.
         samples: ``(index, {field: bytes})`` pairs; fields are e.g. ``"rgb.png"``, ``"json"``.
+        tag: the writer's mark in the temporary name (:attr:`synth.lock.OutputLock.tag`).
 
     Raises:
         ValueError: on a field name with a ``/`` or an empty sample; nothing is left behind.
     """
     path = Path(path)
-    with atomic_write(path) as f, tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
+    with atomic_write(path, tag=tag) as f, tarfile.open(fileobj=f, mode="w", format=tarfile.USTAR_FORMAT) as tar:
         for index, fields in samples:
             if not fields:
                 raise ValueError(f"sample {index} has no fields")
@@ -129,6 +144,7 @@ class ShardWriter:
         seed: the dataset seed (passed to :func:`sample_rng` with each index).
         config: the configuration, recorded in the manifest (JSON-serialisable).
         versions: package versions, recorded in the manifest.
+        tag: the writer's mark in its temporary file names (:mod:`synth.lock`).
     """
 
     out: Path
@@ -137,6 +153,7 @@ class ShardWriter:
     seed: int
     config: dict[str, Any] = field(default_factory=dict)
     versions: dict[str, str] = field(default_factory=dict)
+    tag: str = ""
 
     def __post_init__(self) -> None:
         self.out = Path(self.out)
@@ -168,7 +185,10 @@ class ShardWriter:
     def write_manifest(self, shards: dict[str, Any], skipped: list[dict[str, Any]] | None = None) -> dict[str, Any]:
         """Write :meth:`manifest` atomically to ``out/manifest.json``; return it."""
         man = self.manifest(dict(sorted(shards.items())), skipped)
-        _write_json_atomic(self.out / MANIFEST, man)
+        try:
+            _write_json_atomic(self.out / MANIFEST, man, self.tag)
+        except OSError as exc:
+            raise WriteError.of(self.out / MANIFEST, exc) from None
         return man
 
     def pending(self, resume: bool) -> tuple[list[int], dict[str, Any], list[dict[str, Any]]]:
@@ -228,20 +248,31 @@ class ShardWriter:
             plan: what :meth:`pending` returned, when the caller checked the folder before
                 starting (``resume`` is then not looked at).
         """
-        self.out.mkdir(parents=True, exist_ok=True)
+        try:
+            self.out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise WriteError.of(self.out, exc) from None
         todo, done, skipped = plan if plan is not None else self.pending(resume)
         skipped = list(skipped)
         for count, s in enumerate(todo):
             if stop_after is not None and count >= stop_after:
                 break
             idx, left_out = self.indices(s), []
-            digest = write_shard(self.out / shard_name(s), self._samples(make_sample, idx, left_out))
+            path = self.out / shard_name(s)
+            try:
+                digest = write_shard(path, self._samples(make_sample, idx, left_out), self.tag)
+            except OSError as exc:
+                raise WriteError.of(path, exc) from None
             skipped += left_out
             done[shard_name(s)] = {"sha256": digest, "samples": len(idx) - len(left_out), "first": idx.start}
             self.write_manifest(done, skipped)
             if on_shard is not None:
                 on_shard(s, len(idx) - len(left_out))
         return self.write_manifest(done, skipped)
+
+    def temporary_files(self, tag: str) -> list[Path]:
+        """The temporary files a writer with ``tag`` left in the folder (a dead writer's)."""
+        return sorted(p for p in self.out.glob(f".*.{glob.escape(tag)}.tmp") if p.is_file()) if tag else []
 
     def _samples(
         self, make_sample: Callable[[int, np.random.Generator], dict[str, bytes]], idx: range, left_out: list
@@ -252,4 +283,6 @@ class ShardWriter:
             except SkipSample as exc:
                 left_out.append({"index": i, "reason": str(exc)})
                 continue
+            except OSError as exc:  # the sample's own failure, not a write of this shard
+                raise RuntimeError(f"sample {i}: {exc}") from exc
             yield i, fields

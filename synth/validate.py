@@ -1,13 +1,17 @@
 """``synth validate``: check every sample of a dataset against its own geometry.
 
-Per dataset: the manifest is readable and complete, every shard exists and its SHA-256 matches,
+Per dataset (a folder without a readable manifest is bad input, a ``ValueError``): the manifest is
+complete, every shard exists and its SHA-256 matches,
 every subject file matches ``subjects/index.json``.
 
 Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLSM parameters):
 
 - all fields are present and decode, and their sizes agree with ``image``;
 - ``keypoints_3d_cam = R keypoints_3d + t`` and ``keypoints_2d`` is their projection with ``K``
-  (1e-3 px) for keypoints in front of the camera; the rebuilt keypoints equal the stored ones;
+  for keypoints in front of the camera, up to what the JSON's 6-decimal rounding of ``K``, ``R``,
+  ``t`` and the keypoints allows (per keypoint, :func:`synth.format.projection_tolerance`: under
+  1e-3 px for a person filling the image, however long the lens); the rebuilt keypoints equal the
+  stored ones;
 - visible keypoints are in frame and lie inside their person's mask;
 - ``box`` is the bounding box of the person's mask and holds its visible keypoints;
 - the mask matches the projected mesh: the union of the people's projected triangles, tested at
@@ -29,10 +33,10 @@ from blsm.camera import Camera
 from blsm.io import sha256_file
 from synth import format as fmt
 from synth.raster import rasterise
+from synth.shards import FORMAT as SHARDS_FORMAT
 from synth.shards import MANIFEST, read_shard
 
 REPROJ_PX = 0.01
-KEYPOINT_PX = 1e-3
 DEPTH_M = 1e-4
 EDGE_PIXELS = 0.002  # fraction of the foreground area (at least 2 pixels)
 
@@ -91,15 +95,26 @@ class MeshRebuilder:
 
 
 def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Report:
-    """Check a dataset folder; return a report (``failures`` empty when everything holds)."""
+    """Check a dataset folder; return a report (``failures`` empty when everything holds).
+
+    Raises:
+        ValueError: one line naming the file, when the folder holds no readable manifest of a
+            dataset (bad input, not a failed validation).
+    """
     dataset = Path(dataset)
     rep = Report()
     man_path = dataset / MANIFEST
+    if not man_path.is_file():
+        raise ValueError(f"{man_path}: no dataset manifest here")
     try:
-        man = json.loads(man_path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        rep.fail(str(man_path), f"unreadable manifest ({exc})")
-        return rep
+        man = json.loads(man_path.read_bytes().decode("utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
+    if not isinstance(man, dict) or man.get("format") != SHARDS_FORMAT:
+        raise ValueError(f"{man_path}: not a {SHARDS_FORMAT!r} manifest")
+    shards = man.get("shards") or {}
+    if not isinstance(shards, dict) or not all(isinstance(e, dict) for e in shards.values()):
+        raise ValueError(f"{man_path}: 'shards' must map each shard's name to its entry")
     if not man.get("complete"):
         rep.fail(str(man_path), "the run is not complete (resume it with --resume)")
     idx_path = dataset / "subjects" / "index.json"
@@ -108,14 +123,14 @@ def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Re
             p = dataset / "subjects" / f"{sid}.npz"
             if not p.is_file() or sha256_file(p) != digest:
                 rep.fail(str(p), "missing or its SHA-256 differs from subjects/index.json")
-    except (OSError, json.JSONDecodeError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         rep.fail(str(idx_path), f"unreadable subject index ({exc})")
     rebuild = MeshRebuilder(dataset, man.get("config", {}))
     m = rebuild.model
     from synth.labels import bone_parts
 
     bone_to_part = bone_parts(m.vertex_bones.numpy(), m.vertex_parts.numpy(), m.num_joints)
-    for name, entry in sorted(man.get("shards", {}).items()):
+    for name, entry in sorted(shards.items()):
         path = dataset / name
         if not path.is_file():
             rep.fail(str(path), "missing shard")
@@ -139,6 +154,28 @@ def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Re
                 rep.fail(str(dataset), f"stopped after {max_failures} failures")
                 return rep
     return rep
+
+
+def check_keypoints(cam: Camera, person: dict[str, Any]) -> list[str]:
+    """What is wrong with a person's ``keypoints_3d_cam`` and ``keypoints_2d`` against the stored
+    ``keypoints_3d`` and camera, beyond the JSON's rounding (:mod:`synth.format`, Precision)."""
+    out = []
+    kp3 = np.asarray(person["keypoints_3d"], np.float64)
+    kc = kp3 @ cam.R.T + cam.t
+    err3 = np.abs(kc - np.asarray(person["keypoints_3d_cam"], np.float64)).max(-1)
+    tol3 = fmt.camera_point_tolerance(kp3, cam.R)
+    if (err3 > tol3).any():
+        k = int(np.argmax(err3 - tol3))
+        out.append(f"keypoints_3d_cam is not R keypoints_3d + t ({err3[k]:.2e} m at keypoint {k}, allowed {tol3[k]:.1e})")
+    front = kc[:, 2] > 1e-6
+    if front.any():
+        kp2 = np.asarray(person["keypoints_2d"], np.float64)[front]
+        err = np.abs(cam.project(kp3[front]) - kp2).max(-1)
+        tol = fmt.projection_tolerance(kp3[front], cam.K, cam.R, cam.t)
+        if (err > tol).any():
+            k = int(np.argmax(err - tol))
+            out.append(f"keypoints_2d are not the projection of keypoints_3d ({err[k]:.2e} px, allowed {tol[k]:.1e})")
+    return out
 
 
 def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, bone_to_part: np.ndarray, rep: Report) -> None:
@@ -165,14 +202,9 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
     for i, p in enumerate(doc["people"]):
         pw = f"{where} person {i}"
         kp3 = np.asarray(p["keypoints_3d"], np.float64)
-        kc = kp3 @ cam.R.T + cam.t
-        if np.abs(kc - np.asarray(p["keypoints_3d_cam"])).max() > 1e-5:
-            rep.fail(pw, "keypoints_3d_cam is not R keypoints_3d + t")
-        front = kc[:, 2] > 1e-6
+        for msg in check_keypoints(cam, p):
+            rep.fail(pw, msg)
         kp2 = np.asarray(p["keypoints_2d"], np.float64)
-        err = np.abs(cam.project(kp3[front]) - kp2[front]).max() if front.any() else 0.0
-        if err > KEYPOINT_PX:
-            rep.fail(pw, f"keypoints_2d are not the projection of keypoints_3d ({err:.2e} px)")
         sel = mask == i + 1
         vis = np.asarray(p["visible"], bool)
         if (vis & ~np.asarray(p["in_frame"], bool)).any():

@@ -288,6 +288,14 @@ def _load_mesh(path: Path, landmarks: str | Path | None) -> Scan:
             ).reshape(len(names), 3)
         except (OSError, ValueError, TypeError) as e:
             raise ValueError(f"{lm_path}: bad landmark file ({e})") from None
+        # Checked here so that the error names this file, not the mesh (check_scan repeats it).
+        partial = ~np.isfinite(points).all(1) & ~np.isnan(points).all(1)
+        if partial.any():
+            raise ValueError(f"{lm_path}: landmark {names[int(np.argmax(partial))]!r} holds NaN or inf "
+                             "(write null for a landmark that was not located)")
+        unknown = [n for n in names if n not in set(landmark_names())]
+        if unknown:
+            raise ValueError(f"{lm_path}: unknown landmark names {unknown[:5]} (not in {LANDMARKS_YAML.name})")
     elif landmarks is not None:
         raise ValueError(f"{lm_path}: landmark file does not exist")
     return Scan(

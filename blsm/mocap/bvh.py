@@ -29,6 +29,9 @@ from scipy.spatial.transform import Rotation, Slerp
 UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 _ROT = {"Xrotation": "X", "Yrotation": "Y", "Zrotation": "Z"}
 _POS = {"Xposition": 0, "Yposition": 1, "Zposition": 2}
+MAX_ABS = 1e6
+"""Largest magnitude of a value (an offset or position in file units, an angle in degrees): beyond it
+a number is garbage (10 km in cm; 2778 turns), and Euler angles lose all precision long before 1e30."""
 
 
 class BvhError(ValueError):
@@ -126,6 +129,9 @@ def _floats(path: Path, line: int, tokens: list[str], what: str) -> np.ndarray:
         raise _fail(path, line, f"{what}: {bad!r} is not a number") from None
     if not np.isfinite(v).all():
         raise _fail(path, line, f"{what}: non-finite value ({tokens[int(np.argmin(np.isfinite(v)))]})")
+    if (np.abs(v) > MAX_ABS).any():
+        big = tokens[int(np.argmax(np.abs(v)))]
+        raise _fail(path, line, f"{what}: value {big} is out of range (|v| > {MAX_ABS:g})")
     return v
 
 
@@ -279,13 +285,13 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
         BvhError: ``"<file>:<line>: <problem>"`` for anything malformed: an unknown keyword,
             unbalanced braces, a missing OFFSET, channel count or names, a missing ``Frames:`` or
             ``Frame Time:``, a frame with too few or too many values, a value that is not a finite
-            number, fewer frame lines than ``Frames:`` announces.
+            number or is larger than ``MAX_ABS``, fewer frame lines than ``Frames:`` announces.
     """
     path = Path(path)
     if units != "auto" and units not in UNITS:
         raise ValueError(f"units must be 'auto' or one of {sorted(UNITS)}, got {units!r}")
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
+        text = path.read_text(encoding="utf-8-sig", errors="strict")  # a leading BOM is not content
     except OSError as exc:
         raise BvhError(f"{path}:0: cannot read ({exc.strerror})") from None
     except UnicodeDecodeError as exc:
@@ -359,6 +365,11 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
     if bad.any():
         k, c = np.argwhere(bad)[0]
         raise _fail(path, first + int(k), f"frame {k + 1}: non-finite value in channel {c + 1}")
+    huge = np.abs(data) > MAX_ABS
+    if huge.any():
+        k, c = np.argwhere(huge)[0]
+        msg = f"frame {k + 1}: value {data[k, c]:g} in channel {c + 1} is out of range (|v| > {MAX_ABS:g})"
+        raise _fail(path, first + int(k), msg)
 
     unit = infer_units(skel) if units == "auto" else units
     scale = UNITS[unit]

@@ -120,6 +120,8 @@ def load_clip(path: str | Path) -> MotionClip:
         meta = json.loads(str(data["meta"]))
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: meta is not JSON ({exc.msg})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: meta must hold a JSON object")
     if meta.get("format") != FORMAT:
         raise ValueError(f"{path}: format is {meta.get('format')!r}, expected {FORMAT!r}")
     if meta.get("version") != VERSION:
