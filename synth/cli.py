@@ -1,6 +1,8 @@
 """The ``synth`` command: generate, preview, validate and export datasets.
 
     synth generate CONFIG --out DIR [--num N] [--workers W] [--resume] [--skip-bad]
+                   [--engine local|ray [--address ADDR]] [--part I/N]
+    synth merge DIR
     synth preview DIR --out PNG [--count N]
     synth validate DIR
     synth export DIR --format spin|coco --out DIR2 [--overwrite]
@@ -26,9 +28,27 @@ def _generate(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, num=args.num)
     if args.skip_bad:
         cfg = dataclasses.replace(cfg, skip_bad=True)
-    man = generate(cfg, args.out, workers=args.workers, resume=args.resume, stop_after=args.stop_after)
+    from synth.shards import parse_part
+
+    part = parse_part(args.part) if args.part else (1, 1)
+    if args.address and args.engine != "ray":
+        raise ValueError("--address needs --engine ray")
+    man = generate(cfg, args.out, workers=args.workers, resume=args.resume, stop_after=args.stop_after, part=part,
+                   engine=args.engine, address=args.address)
     n = sum(e["samples"] for e in man["shards"].values())
-    print(f"{args.out}: {n} samples in {len(man['shards'])} shards" + (f", {len(man.get('skipped', []))} skipped" if man.get("skipped") else ""))
+    what = f"part {part[0]}/{part[1]}: " if part[1] > 1 else ""
+    print(f"{args.out}: {what}{n} samples in {len(man['shards'])} shards" + (f", {len(man.get('skipped', []))} skipped" if man.get("skipped") else ""))
+    if part[1] > 1 and man["complete"]:
+        print(f"{args.out}: part {part[0]}/{part[1]} done; when every part is, run: synth merge {args.out}")
+    return 0
+
+
+def _merge(args: argparse.Namespace) -> int:
+    from synth.generate import merge
+
+    man = merge(args.dataset)
+    n = sum(e["samples"] for e in man["shards"].values())
+    print(f"{args.dataset}: merged {n} samples in {len(man['shards'])} shards")
     return 0
 
 
@@ -68,8 +88,15 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--workers", type=int, default=1)
     g.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
     g.add_argument("--skip-bad", action="store_true", help="skip and list bad samples or scans instead of stopping")
+    g.add_argument("--engine", choices=("local", "ray"), default="local",
+                   help="local: a process pool of --workers (default); ray: one Ray task per shard")
+    g.add_argument("--address", help="the Ray cluster to join (--engine ray; default: start a local one)")
+    g.add_argument("--part", help="make only part I of N of the shards (I/N, e.g. 3/8); join with synth merge")
     g.add_argument("--stop-after", type=int, help=argparse.SUPPRESS)
     g.set_defaults(run=_generate)
+    m = sub.add_parser("merge", help="join the parts of a --part I/N run into one dataset")
+    m.add_argument("dataset", type=Path)
+    m.set_defaults(run=_merge)
     p = sub.add_parser("preview", help="contact sheet with keypoint, mask and part overlays")
     p.add_argument("dataset", type=Path)
     p.add_argument("--out", required=True, type=Path)

@@ -167,6 +167,23 @@ class RenderConfig:
 
 
 @dataclass(frozen=True)
+class EngineConfig:
+    """How shards are spread over a Ray cluster (``synth generate --engine ray``). It changes no
+    byte of the data, so resuming and merging ignore it: ``cpus_per_task`` CPUs are reserved for
+    each shard task (and are Dr.Jit's threads in it); a task whose worker process or node dies is
+    re-run up to ``max_retries`` times (a sample that fails for a data reason is never retried)."""
+
+    cpus_per_task: int = 1
+    max_retries: int = 3
+
+    def __post_init__(self) -> None:
+        if self.cpus_per_task < 1:
+            raise ValueError(f"engine.cpus_per_task must be positive, got {self.cpus_per_task}")
+        if self.max_retries < 0:
+            raise ValueError(f"engine.max_retries must be non-negative, got {self.max_retries}")
+
+
+@dataclass(frozen=True)
 class GeneratorConfig:
     """The top level of a ``configs/synth/*.yaml`` file.
 
@@ -187,6 +204,7 @@ class GeneratorConfig:
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
+    engine: EngineConfig = field(default_factory=EngineConfig)
 
     def __post_init__(self) -> None:
         if self.seed < 0:

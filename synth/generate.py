@@ -31,7 +31,7 @@ import torch
 
 from blsm import mitsuba_util
 from blsm.color import linear_to_srgb, srgb_to_linear
-from blsm.io import sha256_file
+from blsm.io import atomic_write, sha256_file
 from synth import backgrounds as bg
 from synth import format as fmt
 from synth import labels as lab
@@ -43,6 +43,8 @@ from synth.shards import ShardWriter, SkipSample, WriteError, sample_rng, shard_
 from synth.subjects import Subject, anny_subject, load_subject, model_fingerprint, pose_subject, save_subject
 
 SUBJECTS = "subjects"
+SUBJECTS_LOCK = ".lock-subjects"
+ENGINES = ("local", "ray")
 
 
 def _log(msg: str) -> None:
@@ -115,7 +117,8 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
         if not paths:
             raise ValueError(f"{cfg.subjects.folder}: no usable scan")
     index = {"subjects": {p.stem: sha256_file(p) for p in paths}, "skipped": skipped}
-    (folder / "index.json").write_text(json.dumps(index, indent=1, sort_keys=True) + "\n")
+    with atomic_write(folder / "index.json", "w", f"{os.getpid()}") as fh:
+        fh.write(json.dumps(index, indent=1, sort_keys=True) + "\n")
     return paths
 
 
@@ -483,6 +486,9 @@ def generate(
     progress: bool = True,
     stop_after: int | None = None,
     on_image: Callable[[int], None] | None = None,
+    part: tuple[int, int] = (1, 1),
+    engine: str = "local",
+    address: str | None = None,
 ) -> dict[str, Any]:
     """Generate the dataset of ``cfg`` into ``out``; return the manifest.
 
@@ -500,6 +506,11 @@ def generate(
         stop_after: stop after this many shards (tests).
         on_image: called in this process as ``on_image(images_done)`` after each image
             (benchmarks).
+        part: ``(I, N)``: make only part ``I`` of ``N`` (:mod:`synth.shards`, Parts): its shards
+            and ``manifest-part-I-of-N.json``; ``synth merge`` joins the parts.
+        engine: ``"local"`` (a process pool of ``workers``) or ``"ray"`` (one Ray task per shard,
+            :mod:`synth.engine_ray`; ``workers`` is not used).
+        address: the Ray cluster to join (``engine="ray"``); None starts a local one.
 
     Every input file (backgrounds, scans, poses) is opened and checked first; then the folder is
     locked (:mod:`synth.lock`: one writer per folder; temporary files carry the writer's tag). Bad
@@ -513,8 +524,13 @@ def generate(
     """
     import blsm
 
+    if engine not in ENGINES:
+        raise ValueError(f"unknown engine {engine!r}; choose one of {list(ENGINES)}")
     out = Path(out)
-    writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions())
+    writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions(),
+                         part=part)
+    if not writer.shards():
+        raise ValueError(f"part {part[0]}/{part[1]} has no shards: the dataset has {writer.num_shards}")
     writer.pending(resume)  # fail fast (a dataset already there); checked again under the lock
     model = blsm.load()
     check_inputs(cfg, model)
@@ -522,7 +538,7 @@ def generate(
     created = _first_missing(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        lock = out_lock.acquire(out, warn=_log, stale_files=writer.temporary_files)
+        lock = out_lock.acquire(out, *part, warn=_log, stale_files=writer.temporary_files)
     except OSError as exc:
         _remove(created)
         raise WriteError.of(Path(exc.filename or out), exc) from None
@@ -534,7 +550,11 @@ def generate(
         new_subjects = not (out / SUBJECTS).exists()
         try:
             todo, done, skipped = writer.pending(resume)
-            prepare_subjects(cfg, out, model)
+            if part[1] > 1:  # parts running side by side make the subjects once
+                with out_lock.exclusive(out / SUBJECTS_LOCK, lambda: _log("waiting for another part to make the subjects")):
+                    prepare_subjects(cfg, out, model)
+            else:
+                prepare_subjects(cfg, out, model)
         except (ValueError, OSError) as exc:
             # Bad input found before any shard: leave the folder as it was.
             lock.release()
@@ -542,7 +562,25 @@ def generate(
             if isinstance(exc, OSError):
                 raise WriteError.of(Path(exc.filename or out / SUBJECTS), exc) from None
             raise
+        if engine == "ray":
+            from synth.engine_ray import run_ray
+
+            return run_ray(cfg, out, writer, (todo, done, skipped), variant, address, progress, stop_after, on_image)
         return _run(cfg, out, writer, (todo, done, skipped), variant, workers, progress, stop_after, on_image)
+
+
+def merge(out: str | Path) -> dict[str, Any]:
+    """``synth merge DIR``: join the parts of a partitioned run (:func:`synth.shards.merge_parts`)
+    under the folder's lock (refused while a part still runs); return the manifest."""
+    from synth.shards import merge_parts
+
+    out = Path(out)
+    if not out.is_dir():
+        raise ValueError(f"{out}: no such dataset folder")
+    with out_lock.acquire(out, warn=_log) as lock:
+        man = merge_parts(out, lock.tag)
+        (out / SUBJECTS_LOCK).unlink(missing_ok=True)
+    return man
 
 
 def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
@@ -624,7 +662,8 @@ def _run(
     def on_shard(s: int, count: int) -> None:
         nonlocal shards_done
         shards_done += 1
-        meter.shard(f"{shard_name(s)}: {count} samples ({shards_done}/{writer.num_shards} shards)")
+        where = f", {writer.part_label}" if writer.part_label else ""
+        meter.shard(f"{shard_name(s)}: {count} samples ({shards_done}/{len(writer.shards())} shards{where})")
 
     # In this process (one worker), numpy's BLAS keeps one thread while samples are made: its idle
     # threads would otherwise spin on the cores Dr.Jit renders with (see _init_worker).

@@ -20,6 +20,9 @@ Design:
   be refused, never both admitted.
 - Temporary files carry the writer's :attr:`OutputLock.tag` (``<host>.<pid>``), so that two writers
   never write the same temporary file.
+- Work the parts of one run share (the dataset's subjects) is done under :func:`exclusive`
+  (``DIR/.lock-subjects``, a blocking ``flock``): the first part makes the subjects, the others
+  wait for it and reuse them.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import json
 import os
 import re
 import socket
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -222,3 +225,25 @@ def _check_others(folder: Path, mine: Path, part: tuple[int, int]) -> None:
                 )
         finally:
             os.close(fd)  # also drops the flock when we got it (the file stays, a dead one's)
+
+
+@contextlib.contextmanager
+def exclusive(path: str | Path, waiting: Callable[[], None] | None = None) -> Iterator[None]:
+    """Hold the blocking ``flock`` of ``path`` (created if missing) for the ``with`` block.
+
+    For work that concurrent writers of one folder must do once (the parts of a run making the
+    dataset's subjects): the first does it, the others wait and then find it done. ``waiting`` is
+    called once if another process holds the lock. The file is left in place (unlinking a lock file
+    others may be waiting on would let two holders in).
+    """
+    path = Path(path)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        got = _try_flock(fd)
+        if got is False:
+            if waiting is not None:
+                waiting()
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # drops the flock

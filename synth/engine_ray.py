@@ -1,0 +1,225 @@
+"""The Ray engine of ``synth generate --engine ray [--address ADDR]``: one Ray task per shard.
+
+Design (docs/scaling.md has the how-to and the measurements):
+
+- **The driver** (the ``synth generate`` process) does what a local run does first: it checks every
+  input file, locks the output folder (:mod:`synth.lock`) and makes the dataset's subjects once,
+  into ``DIR/subjects/``. It then submits one task per pending shard and writes the manifest as
+  each shard's checksum comes in (so ``--resume`` keeps every shard finished before the driver
+  itself was killed), and the final, complete manifest when every shard is in.
+- **Storage.** ``DIR`` must be a path every node sees under the same name (NFS, Lustre, a mounted
+  bucket with rename): tasks read the subjects, the motion library and the backgrounds from there
+  and write their shards there. ``fsspec`` URLs (``s3://``) are not supported: a shard appears by an
+  atomic rename of its temporary file, which object stores do not offer.
+- **A task** makes its shard's samples in index order, in a Ray worker process that loads the
+  model, subjects and backgrounds once and keeps its Mitsuba scenes for later tasks of the run
+  (replaced after ``render.recycle_after`` images, as local workers are). It writes the shard to
+  ``.shard-NNNNNN.tar.<host>.<pid>.tmp`` and renames it, and returns the shard's SHA-256; the
+  driver checks that SHA-256 against the file it sees before listing the shard.
+- **Faults.** A task whose worker process or node dies is re-run by Ray, up to
+  ``engine.max_retries`` times, on any node; the shard it makes is the same bytes, because a
+  sample depends on ``(seed, index)`` only. A sample that fails for a data reason (a bad scan, a
+  corrupt background) is returned as data, never raised, so Ray does not retry it: with
+  ``skip_bad`` it is listed in the manifest, without it the run stops with the one-line error and
+  exit status 1 of a local run. A failed write (a full disk) is the local run's one-line error,
+  exit status 2.
+- **Progress.** Every task ticks a counter actor per image; the driver prints one progress line
+  for the whole cluster.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from blsm.io import sha256_file
+from synth.config import GeneratorConfig
+from synth.shards import ShardWriter, WriteError, shard_name, write_shard
+
+_KEY: str = ""
+_MADE = 0
+
+
+def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int, start: int, stop: int,
+                skip_bad: bool, counter: Any) -> dict[str, Any]:
+    """Make and write shard ``shard`` (samples ``start .. stop - 1``) in a Ray worker process.
+
+    Returns:
+        ``{"shard", "sha256", "samples", "first", "skipped"}``, or ``{"shard", "error"}`` for a
+        sample that failed (without ``skip_bad``), or ``{"shard", "write_error"}``.
+    """
+    from synth import generate as gen
+
+    global _KEY, _MADE
+    key = json.dumps([cfg_json, out, variant, threads], sort_keys=True)
+    if key != _KEY or _MADE >= int(cfg_json["render"]["recycle_after"]):
+        gen._init_worker(cfg_json, out, variant, threads, True)
+        _KEY, _MADE = key, 0
+    samples: list[tuple[int, dict[str, bytes]]] = []
+    left_out: list[dict[str, Any]] = []
+    for i in range(start, stop):
+        index, fields, kind, msg = gen._make_one(i)
+        _MADE += 1
+        counter.tick.remote(shard, i - start + 1)
+        if fields is None:
+            if not skip_bad:
+                return {"shard": shard, "error": f"sample {i}: {msg}"}
+            left_out.append({"index": i, "reason": f"{kind}: {msg}"})
+            continue
+        samples.append((index, fields))
+    path = Path(out) / shard_name(shard)
+    try:
+        digest = write_shard(path, samples, f"{socket.gethostname() or 'localhost'}.{os.getpid()}")
+    except OSError as exc:
+        return {"shard": shard, "write_error": str(WriteError.of(path, exc))}
+    return {"shard": shard, "sha256": digest, "samples": len(samples), "first": start, "skipped": left_out}
+
+
+class _Counter:
+    """Images made per shard by its latest attempt (a retried shard starts again from 0)."""
+
+    def __init__(self) -> None:
+        self.made: dict[int, int] = {}
+
+    def tick(self, shard: int, made: int) -> None:
+        self.made[shard] = made
+
+    def total(self) -> int:
+        return sum(self.made.values())
+
+
+def _connect(address: str | None) -> bool:
+    """Join the cluster at ``address`` (None: start a local one); True when this call started Ray."""
+    import logging
+
+    import ray
+
+    if ray.is_initialized():
+        return False
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # Ray would report usage over the network
+    try:
+        ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
+                 configure_logging=True)
+    except ConnectionError as exc:
+        raise ValueError(f"--address {address}: cannot reach a Ray cluster ({str(exc).splitlines()[0]})") from None
+    return True
+
+
+def run_ray(
+    cfg: GeneratorConfig,
+    out: Path,
+    writer: ShardWriter,
+    plan: tuple[list[int], dict[str, Any], list[dict[str, Any]]],
+    variant: str,
+    address: str | None,
+    progress: bool,
+    stop_after: int | None,
+    on_image: Callable[[int], None] | None,
+) -> dict[str, Any]:
+    """The shards of :func:`synth.generate.generate` as Ray tasks (module docstring); the manifest.
+
+    Raises:
+        ValueError: the cluster cannot be reached; a failed write (:class:`WriteError`).
+        RuntimeError: a sample failed (without ``skip_bad``), or a task failed more than
+            ``engine.max_retries`` times; the finished shards are kept for ``--resume``.
+    """
+    try:
+        import ray
+        import ray.util.scheduling_strategies
+    except ImportError:
+        raise ValueError("--engine ray needs Ray: pip install 'blsm-synth[ray]'") from None
+    from synth import generate as gen
+
+    todo, done, skipped = plan
+    done, skipped = dict(done), list(skipped)
+    if stop_after is not None:
+        todo = todo[:stop_after]
+    total = sum(len(writer.indices(s)) for s in todo)
+    started = _connect(address)
+    try:
+        nodes = [n for n in ray.nodes() if n.get("Alive")]
+        cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
+        gen._log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
+                 f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
+        task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
+                                               retry_exceptions=False)
+        # The counter lives on the driver's node: it must outlive any node that leaves.
+        here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=True)
+        counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
+        cfg_json, where = gen._cfg_json(cfg), str(out.resolve())
+        refs = {
+            task.remote(cfg_json, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
+                        writer.indices(s).stop, cfg.skip_bad, counter): s
+            for s in todo
+        }
+        meter = gen._Progress(total, progress)
+        waiting, shards_done = list(refs), len(done)
+        try:
+            while waiting:
+                ready, waiting = ray.wait(waiting, num_returns=len(waiting), timeout=0.5, fetch_local=True)
+                made = min(ray.get(counter.total.remote()), total)
+                while meter.made < made:
+                    meter.tick()
+                    if on_image is not None:
+                        on_image(meter.made)
+                for ref in sorted(ready, key=refs.__getitem__):
+                    s = refs[ref]
+                    try:
+                        res = ray.get(ref)
+                    except ray.exceptions.RayError as exc:
+                        raise RuntimeError(f"{out / shard_name(s)}: the Ray task failed after "
+                                           f"{cfg.engine.max_retries} retries ({type(exc).__name__})") from None
+                    if "error" in res:
+                        raise RuntimeError(res["error"])
+                    if "write_error" in res:
+                        raise WriteError(res["write_error"])
+                    path = out / shard_name(s)
+                    if not path.is_file() or sha256_file(path) != res["sha256"]:
+                        raise RuntimeError(f"{path}: the shard a task wrote is not here or differs "
+                                           "(is --out on storage every node sees?)")
+                    done[shard_name(s)] = {k: res[k] for k in ("sha256", "samples", "first")}
+                    skipped += res["skipped"]
+                    writer.write_manifest(done, skipped)
+                    shards_done += 1
+                    part = f", {writer.part_label}" if writer.part_label else ""
+                    meter.shard(f"{shard_name(s)}: {res['samples']} samples ({shards_done}/{len(writer.shards())} shards{part})")
+        finally:
+            for ref in waiting:
+                ray.cancel(ref, force=True)
+            ray.kill(counter)
+            _remove_dead_temporaries(out, done)
+        meter.close()
+    finally:
+        if started:
+            ray.shutdown()
+    man = writer.write_manifest(done, skipped)
+    n, lost = sum(e["samples"] for e in man["shards"].values()), len(man["skipped"])
+    gen._log(f"done: {n} samples in {len(man['shards'])} shards, {gen._hms(meter.elapsed())}"
+             + (f", {lost} skipped" if lost else ""))
+    return man
+
+
+def _remove_dead_temporaries(out: Path, done: dict[str, Any]) -> None:
+    """Remove the temporary files of finished shards: left by attempts whose process or node died
+    while writing (the shard was then made again by a retry)."""
+    import glob
+
+    for name in done:
+        for p in out.glob(f".{glob.escape(name)}.*.tmp"):
+            p.unlink(missing_ok=True)
+
+
+def wait_for_nodes(count: int, timeout: float = 60.0) -> None:
+    """Block until ``count`` nodes of the connected cluster are alive (tests, benchmarks)."""
+    import ray
+
+    t0 = time.time()
+    while sum(bool(n.get("Alive")) for n in ray.nodes()) < count:
+        if time.time() - t0 > timeout:
+            raise TimeoutError(f"fewer than {count} Ray nodes after {timeout:.0f} s")
+        time.sleep(0.2)
