@@ -31,6 +31,7 @@ bench: $(STAMP)
 	test -f out/data/val/manifest.json || $(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_mesh.py --out docs/benchmarks.md
+	$(BIN)/python benchmarks/bench_scale.py --out docs/benchmarks.md
 
 # The packaged model, learnt from scans (thesis Sec. 5.4): 1000 Anny stand-in subjects made with
 # the packaged rig, registration, learning, SMPL-reimpl and the held-out evaluation into docs/

@@ -4,9 +4,10 @@ Design (docs/scaling.md has the how-to and the measurements):
 
 - **The driver** (the ``synth generate`` process) does what a local run does first: it checks every
   input file, locks the output folder (:mod:`synth.lock`) and makes the dataset's subjects once,
-  into ``DIR/subjects/``. It then submits one task per pending shard and writes the manifest as
-  each shard's checksum comes in (so ``--resume`` keeps every shard finished before the driver
-  itself was killed), and the final, complete manifest when every shard is in.
+  into ``DIR/subjects/``. It then submits one task per pending shard and rewrites the manifest as
+  shards' checksums come in (at most every ``MANIFEST_EVERY_S``, so that ``--resume`` keeps the
+  shards finished before the driver itself was killed), and the final, complete manifest when every
+  shard is in.
 - **Storage.** ``DIR`` must be a path every node sees under the same name (NFS, Lustre, a mounted
   bucket with rename): tasks read the subjects, the motion library and the backgrounds from there
   and write their shards there. ``fsspec`` URLs (``s3://``) are not supported: a shard appears by an
@@ -14,8 +15,9 @@ Design (docs/scaling.md has the how-to and the measurements):
 - **A task** makes its shard's samples in index order, in a Ray worker process that loads the
   model, subjects and backgrounds once and keeps its Mitsuba scenes for later tasks of the run
   (replaced after ``render.recycle_after`` images, as local workers are). It writes the shard to
-  ``.shard-NNNNNN.tar.<host>.<pid>.tmp`` and renames it, and returns the shard's SHA-256; the
-  driver checks that SHA-256 against the file it sees before listing the shard.
+  ``.shard-NNNNNN.tar.<host>.<pid>.tmp`` and renames it, and returns the shard's SHA-256 and size;
+  the driver checks that the file it sees has that size before listing the shard (it never reads
+  the dataset back; ``--resume`` checks every SHA-256).
 - **Faults.** A task whose worker process or node dies is re-run by Ray, up to
   ``engine.max_retries`` times, on any node; the shard it makes is the same bytes, because a
   sample depends on ``(seed, index)`` only. A sample that fails for a data reason (a bad scan, a
@@ -37,12 +39,15 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from blsm.io import sha256_file
 from synth.config import GeneratorConfig
 from synth.shards import ShardWriter, WriteError, shard_name, write_shard
 
 _KEY: str = ""
 _MADE = 0
+MANIFEST_EVERY_S = 2.0
+"""The driver rewrites the manifest at most this often (and at the end): with thousands of shards a
+rewrite per shard would be the driver's main work. A driver killed in between loses at most these
+seconds of listed shards; ``--resume`` makes them again (the same bytes)."""
 
 
 def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int, start: int, stop: int,
@@ -77,7 +82,8 @@ def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int
         digest = write_shard(path, samples, f"{socket.gethostname() or 'localhost'}.{os.getpid()}")
     except OSError as exc:
         return {"shard": shard, "write_error": str(WriteError.of(path, exc))}
-    return {"shard": shard, "sha256": digest, "samples": len(samples), "first": start, "skipped": left_out}
+    return {"shard": shard, "sha256": digest, "bytes": path.stat().st_size, "samples": len(samples), "first": start,
+            "skipped": left_out}
 
 
 class _Counter:
@@ -151,14 +157,14 @@ def run_ray(
         # The counter lives on the driver's node: it must outlive any node that leaves.
         here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=True)
         counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
-        cfg_json, where = gen._cfg_json(cfg), str(out.resolve())
+        cfg_json, where = ray.put(gen._cfg_json(cfg)), str(out.resolve())
         refs = {
             task.remote(cfg_json, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
                         writer.indices(s).stop, cfg.skip_bad, counter): s
             for s in todo
         }
         meter = gen._Progress(total, progress)
-        waiting, shards_done = list(refs), len(done)
+        waiting, shards_done, last_manifest = list(refs), len(done), 0.0
         try:
             while waiting:
                 ready, waiting = ray.wait(waiting, num_returns=len(waiting), timeout=0.5, fetch_local=True)
@@ -178,13 +184,17 @@ def run_ray(
                         raise RuntimeError(res["error"])
                     if "write_error" in res:
                         raise WriteError(res["write_error"])
+                    # The writer's SHA-256 is trusted; the driver checks presence and size only, so
+                    # that it never reads the whole dataset back (--resume re-reads every shard).
                     path = out / shard_name(s)
-                    if not path.is_file() or sha256_file(path) != res["sha256"]:
+                    if not path.is_file() or path.stat().st_size != res["bytes"]:
                         raise RuntimeError(f"{path}: the shard a task wrote is not here or differs "
                                            "(is --out on storage every node sees?)")
                     done[shard_name(s)] = {k: res[k] for k in ("sha256", "samples", "first")}
                     skipped += res["skipped"]
-                    writer.write_manifest(done, skipped)
+                    if time.time() - last_manifest >= MANIFEST_EVERY_S:
+                        writer.write_manifest(done, skipped)
+                        last_manifest = time.time()
                     shards_done += 1
                     part = f", {writer.part_label}" if writer.part_label else ""
                     meter.shard(f"{shard_name(s)}: {res['samples']} samples ({shards_done}/{len(writer.shards())} shards{part})")
@@ -193,6 +203,7 @@ def run_ray(
                 ray.cancel(ref, force=True)
             ray.kill(counter)
             _remove_dead_temporaries(out, done)
+            writer.write_manifest(done, skipped)  # what is finished, also when the run stops
         meter.close()
     finally:
         if started:
@@ -213,13 +224,3 @@ def _remove_dead_temporaries(out: Path, done: dict[str, Any]) -> None:
         for p in out.glob(f".{glob.escape(name)}.*.tmp"):
             p.unlink(missing_ok=True)
 
-
-def wait_for_nodes(count: int, timeout: float = 60.0) -> None:
-    """Block until ``count`` nodes of the connected cluster are alive (tests, benchmarks)."""
-    import ray
-
-    t0 = time.time()
-    while sum(bool(n.get("Alive")) for n in ray.nodes()) < count:
-        if time.time() - t0 > timeout:
-            raise TimeoutError(f"fewer than {count} Ray nodes after {timeout:.0f} s")
-        time.sleep(0.2)

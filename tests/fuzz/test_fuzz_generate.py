@@ -622,3 +622,101 @@ def test_a_keypoint_moved_by_005_px_fails(bodies, k, axis):
     moved["keypoints_3d_cam"][k][2] += 1e-4
     assert any("keypoints_3d_cam is not R keypoints_3d + t" in m for m in check_keypoints(stored, moved))
 
+
+
+# ------------------------------------------------------------------------------------------------
+# Partitioned runs (--part I/N) and synth merge
+
+
+@pytest.mark.parametrize("arg, problem", [
+    ("x", "--part must be I/N (e.g. 2/8), got 'x'"),
+    ("1/2/3", "--part must be I/N"),
+    ("0/3", "--part 0/3: I must be in [1, N]"),
+    ("4/3", "--part 4/3: I must be in [1, N]"),
+    ("3/8", "part 3/8 has no shards: the dataset has 2"),
+])
+def test_bad_part_argument(tmp_path, capfd, fake_run, arg, problem):
+    cfg = _config(tmp_path)
+    before = snapshot(tmp_path)
+    rc, err = run(capfd, "generate", cfg, "--out", tmp_path / "out", "--part", arg)
+    assert rc == 2 and len(err.splitlines()) == 1 and problem in err and "Traceback" not in err, err
+    assert snapshot(tmp_path) == before
+
+
+def test_address_without_the_ray_engine(tmp_path, capfd, fake_run):
+    cfg = _config(tmp_path)
+    before = snapshot(tmp_path)
+    rc, err = run(capfd, "generate", cfg, "--out", tmp_path / "out", "--address", "127.0.0.1:6379")
+    assert rc == 2 and err.strip() == "synth: error: --address needs --engine ray", err
+    assert snapshot(tmp_path) == before
+
+
+def _parts(tmp_path: Path, capfd, *which: str) -> Path:
+    out = tmp_path / "out"
+    for part in which:
+        rc, err = run(capfd, "generate", _config(tmp_path), "--out", out, "--part", part)
+        assert rc == 0, err
+    return out
+
+
+MERGE_CASES = ["no_folder", "no_parts", "garbage_part_manifest", "renamed_part_manifest", "damaged_shard",
+               "missing_shard", "unfinished_part", "parts_of_two_runs", "mixed_partitions"]
+
+
+@pytest.mark.parametrize("case", MERGE_CASES)
+def test_bad_merge_is_one_line_and_changes_nothing(tmp_path, capfd, fake_run, case):
+    out = tmp_path / "out"
+    if case == "no_folder":
+        bad, problem = out, "no such dataset folder"
+    elif case == "no_parts":
+        out.mkdir()
+        bad, problem = out, "no part manifests (manifest-part-I-of-N.json) to merge"
+    else:
+        _parts(tmp_path, capfd, "1/2", "2/2")
+        p1, p2 = out / "manifest-part-1-of-2.json", out / "manifest-part-2-of-2.json"
+        if case == "garbage_part_manifest":
+            p2.write_bytes(b"\xff\x00garbage")
+            bad, problem = p2, "unreadable manifest"
+        elif case == "renamed_part_manifest":
+            p2.rename(out / "manifest-part-3-of-4.json")
+            bad, problem = out / "manifest-part-3-of-4.json", "holds part 2/2 (renamed?)"
+        elif case == "damaged_shard":
+            shard = out / "shard-000001.tar"
+            data = bytearray(shard.read_bytes())
+            data[700] ^= 0xFF
+            shard.write_bytes(bytes(data))
+            bad, problem = shard, "SHA-256 differs from manifest-part-2-of-2.json"
+        elif case == "missing_shard":
+            (out / "shard-000000.tar").unlink()
+            bad, problem = out / "shard-000000.tar", "missing (listed in manifest-part-1-of-2.json)"
+        elif case == "unfinished_part":
+            man = json.loads(p2.read_text())
+            man["shards"], man["complete"] = {}, False
+            p2.write_text(json.dumps(man))
+            bad, problem = p2, "part 2/2 is unfinished (0 of 1 shards); continue it with --part 2/2 --resume"
+        elif case == "parts_of_two_runs":
+            man = json.loads(p2.read_text())
+            man["seed"] = 99
+            p2.write_text(json.dumps(man))
+            bad, problem = p2, "seed differs from this run; not a part of the run of manifest-part-1-of-2.json"
+        else:  # mixed_partitions: part 2/3 (shard 1) run after the parts of 2
+            rc, err = run(capfd, "generate", _config(tmp_path), "--out", out, "--part", "2/3", "--resume")
+            assert rc == 0, err
+            bad, problem = out / "manifest-part-2-of-3.json", "claims shard-000001.tar, which manifest-part-2-of-2.json claims too"
+    before = snapshot(tmp_path)
+    rc, err = run(capfd, "merge", out)
+    assert_refused(rc, err, bad, problem, before, tmp_path)
+
+
+def test_merge_while_a_part_runs_is_refused(tmp_path, capfd, fake_run):
+    out = _parts(tmp_path, capfd, "1/2")
+    with out_lock.acquire(out, 2, 2):
+        before = snapshot(tmp_path)
+        rc, err = run(capfd, "merge", out)
+        assert_refused(rc, err, out, "in use by another synth generate", before, tmp_path)
+    rc, err = run(capfd, "generate", _config(tmp_path), "--out", out, "--part", "2/2")
+    assert rc == 0, err
+    rc, err = run(capfd, "merge", out)
+    assert rc == 0, err
+    assert json.loads((out / "manifest.json").read_text())["complete"]
+    assert not list(out.glob("manifest-part-*")) and not list(out.glob(".lock*"))
