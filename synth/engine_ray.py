@@ -87,16 +87,23 @@ def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int
 
 
 class _Counter:
-    """Images made per shard by its latest attempt (a retried shard starts again from 0)."""
+    """Images made per shard by its latest attempt (a retried shard starts again from 0), and the
+    shards that were started more than once (their worker or node was lost)."""
 
     def __init__(self) -> None:
         self.made: dict[int, int] = {}
+        self.restarted: set[int] = set()
 
     def tick(self, shard: int, made: int) -> None:
+        if made == 1 and shard in self.made:
+            self.restarted.add(shard)
         self.made[shard] = made
 
     def total(self) -> int:
         return sum(self.made.values())
+
+    def retried(self) -> list[int]:
+        return sorted(self.restarted)
 
 
 def _connect(address: str | None) -> bool:
@@ -198,6 +205,10 @@ def run_ray(
                     shards_done += 1
                     part = f", {writer.part_label}" if writer.part_label else ""
                     meter.shard(f"{shard_name(s)}: {res['samples']} samples ({shards_done}/{len(writer.shards())} shards{part})")
+            retried = ray.get(counter.retried.remote())
+            if retried:
+                gen._log(f"{len(retried)} shards made again after their worker or node was lost: "
+                         + ", ".join(shard_name(x) for x in retried))
         finally:
             for ref in waiting:
                 ray.cancel(ref, force=True)

@@ -11,7 +11,9 @@ starts from REF's subjects (copied), and writes into WORK/{a,b,c,d,e}. Prints a 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import os
 import shutil
@@ -37,6 +39,55 @@ def break_sample_5() -> None:
         return make(self, index, rng)
 
     gen.SampleMaker.make = broken
+
+
+def slow_samples() -> None:
+    """Ray worker setup hook: every sample takes 0.3 s longer."""
+    from synth import generate as gen
+
+    make = gen.SampleMaker.make
+
+    def slow(self, index, rng):
+        time.sleep(0.3)
+        return make(self, index, rng)
+
+    gen.SampleMaker.make = slow
+
+
+def hook_env(hook: str, work: Path) -> dict:
+    """A runtime environment whose worker processes run ``hook`` at start-up."""
+    return {"worker_process_setup_hook": hook,
+            "env_vars": {"PYTHONPATH": f"{Path(__file__).parent}:{Path(__file__).parents[2]}",
+                         "BREAK_LOG": str(work / "attempts.txt")}}
+
+
+def kill_workers_of(node) -> int:
+    """SIGKILL the worker processes of a ``ray.cluster_utils`` node (the children of its raylet);
+    return how many."""
+    arg = f"--raylet_socket_name={node.raylet_socket_name}"
+    raylets = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if arg.encode() in cmd:
+            raylets.append(int(pid))
+    killed = 0
+    for raylet in raylets:
+        children = []
+        for task in Path(f"/proc/{raylet}/task").glob("*"):
+            try:
+                children += (task / "children").read_text().split()
+            except OSError:  # a thread that ended meanwhile
+                continue
+        for child in children:
+            try:
+                os.kill(int(child), signal.SIGKILL)
+                killed += 1
+            except ProcessLookupError:
+                pass
+    return killed
 
 
 def main() -> None:
@@ -78,11 +129,21 @@ def main() -> None:
     def remove_node(made: int) -> None:
         if made >= 1 and not removed:  # at the driver's first look, about 0.5 s in: both nodes busy
             removed["at_image"] = made
+            # Its worker processes die with it, mid-shard (left alone, a worker whose raylet died
+            # can still finish its task and hand the result to the driver).
+            removed["workers_killed"] = kill_workers_of(victim)
             cluster.remove_node(victim, allow_graceful=False)
 
     t0 = time.time()
-    generate(cfg, fresh("b"), engine="ray", progress=False, on_image=remove_node)
-    summary.update(b_s=round(time.time() - t0, 1), b_removed_at_image=removed.get("at_image"))
+    ray.shutdown()  # a driver whose workers take 0.3 s more per sample: every shard lasts over 1 s
+    ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR,
+             runtime_env=hook_env("ray_scenarios.slow_samples", work))
+    log = io.StringIO()
+    with contextlib.redirect_stderr(log):
+        generate(cfg, fresh("b"), engine="ray", progress=False, on_image=remove_node)
+    summary.update(b_s=round(time.time() - t0, 1), b_removed_at_image=removed.get("at_image"),
+                   b_workers_killed=removed.get("workers_killed"),
+                   b_retried=[ln for ln in log.getvalue().splitlines() if "made again" in ln])
     t0 = time.time()
     while sum(bool(n["Alive"]) for n in ray.nodes()) > 1 and time.time() - t0 < 30:
         time.sleep(0.2)
@@ -106,10 +167,8 @@ def main() -> None:
     # hook): never retried; without skip_bad the run stops with the local one-line error, with it
     # the sample is listed as skipped.
     ray.shutdown()
-    hook = {"worker_process_setup_hook": "ray_scenarios.break_sample_5",
-            "env_vars": {"PYTHONPATH": f"{Path(__file__).parent}:{Path(__file__).parents[2]}",
-                         "BREAK_LOG": str(work / "attempts.txt")}}
-    ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR, runtime_env=hook)
+    ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR,
+             runtime_env=hook_env("ray_scenarios.break_sample_5", work))
     try:
         generate(cfg, fresh("d"), engine="ray", progress=False)
         summary["d_error"] = None

@@ -142,6 +142,7 @@ def test_ray_cluster_of_two_nodes_makes_the_same_bytes(config, reference, tmp_pa
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["b_removed_at_image"] is not None and summary["b_removed_at_image"] < 24, summary
     assert summary["b_nodes_alive_after"] == 1, summary
+    assert len(summary["b_retried"]) == 1 and "after their worker or node was lost" in summary["b_retried"][0], summary
     assert 1 <= summary["c_shards_when_killed"] < 6, summary
     for run in ("a", "b", "c"):
         assert_same_dataset(tmp_path / run, reference)
