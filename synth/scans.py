@@ -434,6 +434,17 @@ def check_scan(model: BLSM, folder: str | Path) -> None:
         raise ValueError(f"{path}: not in BLSM topology ({len(reg.vertices)} vertices, the model has {model.num_vertices})")
 
 
+def subject_folders(root: Path) -> list[Path]:
+    """The subject folders under ``root``, sorted by name (hidden ones ignored); a ValueError naming
+    ``root`` when it is missing or holds none."""
+    if not root.is_dir():
+        raise ValueError(f"{root}: no such scans folder")
+    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    if not folders:
+        raise ValueError(f"{root}: no subject folders")
+    return folders
+
+
 def check_scans(model: BLSM, root: str | Path, skip_bad: bool = False) -> list[tuple[str, str]]:
     """:func:`check_scan` on every subject folder under ``root``, before any work starts.
 
@@ -442,11 +453,7 @@ def check_scans(model: BLSM, root: str | Path, skip_bad: bool = False) -> list[t
         bad); without it the first bad folder raises its ValueError.
     """
     root = Path(root)
-    if not root.is_dir():
-        raise ValueError(f"{root}: no such scans folder")
-    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
-    if not folders:
-        raise ValueError(f"{root}: no subject folders")
+    folders = subject_folders(root)
     bad = []
     for folder in folders:
         try:
@@ -472,11 +479,7 @@ def import_scans(
         The subjects and the skipped folders as (name, reason) pairs.
     """
     root = Path(root)
-    if not root.is_dir():
-        raise ValueError(f"{root}: no such scans folder")
-    folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
-    if not folders:
-        raise ValueError(f"{root}: no subject folders")
+    folders = subject_folders(root)
     subjects, skipped = [], []
     for folder in folders:
         try:

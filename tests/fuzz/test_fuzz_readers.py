@@ -659,6 +659,17 @@ def test_recovery_evaluate_bad_datasets(dataset, tmp_path, capsys, kind):
 # blsm register and blsm train: scans, landmarks and configs
 
 
+def _sphere_scan(folder: Path, landmarks: bytes | None) -> Path:
+    """``folder/scan.ply`` (an icosphere) and, unless None, its ``scan.landmarks.json``."""
+    import trimesh
+
+    scan = folder / "scan.ply"
+    trimesh.creation.icosphere(subdivisions=1).export(scan)
+    if landmarks is not None:
+        (folder / "scan.landmarks.json").write_bytes(landmarks)
+    return scan
+
+
 def _bad_scan(kind: str, folder: Path) -> tuple[Path, list[str], str]:
     """A malformed scan (or its landmarks / register config): the path to name, extra args, the problem."""
     scan = folder / "scan.npz"
@@ -676,40 +687,16 @@ def _bad_scan(kind: str, folder: Path) -> tuple[Path, list[str], str]:
         scan.write_bytes(np.random.default_rng(8).bytes(2000))
         return scan, [], "mesh"
     if kind == "mesh_without_landmarks":
-        import trimesh
-
-        scan = folder / "scan.ply"
-        trimesh.creation.icosphere(subdivisions=1).export(scan)
-        return scan, [], "scan has no located landmarks"
-    if kind == "landmarks_not_json":
-        import trimesh
-
-        scan = folder / "scan.ply"
-        trimesh.creation.icosphere(subdivisions=1).export(scan)
-        lm = folder / "scan.landmarks.json"
-        lm.write_bytes(b"{\xff")
-        return lm, [], "landmarks"
-    if kind == "landmarks_nan":
-        import trimesh
-
-        scan = folder / "scan.ply"
-        trimesh.creation.icosphere(subdivisions=1).export(scan)
-        lm = folder / "scan.landmarks.json"
-        lm.write_text('{"nose": [0, NaN, 0]}')
-        return lm, [], "landmark 'nose' holds NaN or inf"
-    if kind == "landmarks_unknown_name":
-        import trimesh
-
-        scan = folder / "scan.ply"
-        trimesh.creation.icosphere(subdivisions=1).export(scan)
-        lm = folder / "scan.landmarks.json"
-        lm.write_text('{"third_eye": [0, 1, 0]}')
-        return lm, [], "unknown landmark names ['third_eye']"
+        return _sphere_scan(folder, None), [], "scan has no located landmarks"
+    landmarks = {"landmarks_not_json": b"{\xff", "landmarks_nan": b'{"nose": [0, NaN, 0]}',
+                 "landmarks_unknown_name": b'{"third_eye": [0, 1, 0]}', "register_config_unknown_key": b"{}"}
+    problems = {"landmarks_not_json": "landmarks", "landmarks_nan": "landmark 'nose' holds NaN or inf",
+                "landmarks_unknown_name": "unknown landmark names ['third_eye']"}
+    if kind in problems:
+        _sphere_scan(folder, landmarks[kind])
+        return folder / "scan.landmarks.json", [], problems[kind]
     if kind == "register_config_unknown_key":
-        import trimesh
-
-        trimesh.creation.icosphere(subdivisions=1).export(folder / "scan.ply")
-        (folder / "scan.landmarks.json").write_text("{}")
+        _sphere_scan(folder, landmarks[kind])
         cfg = folder / "register.yaml"
         cfg.write_text("iterationz: 3\n")
         return cfg, ["--config", str(cfg)], "iterationz"
