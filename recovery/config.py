@@ -21,6 +21,9 @@ from recovery.mesh_data import MeshDataConfig
 
 BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 TASKS = ("hmr_blsm", "mesh", "autoencoder")
+# Settings added after the first checkpoints: stored (and compared on --resume) only when they differ
+# from their default, so that those checkpoints can still be resumed.
+LATER_SETTINGS = (("train", "sync_batchnorm"),)
 
 
 @dataclass(frozen=True)
@@ -178,7 +181,8 @@ class TrainConfig:
 
     Attributes:
         steps: optimiser steps in all (the schedule's length).
-        batch_size: images per step.
+        batch_size: images per step: the global batch, split evenly over the processes of a
+            ``torchrun`` run (docs/recovery.md, "Training on several processes").
         seed: the run's seed (initialisation, data order, augmentation, real-pose draws).
         val_every: validate every N steps (and at the end).
         checkpoint_every: write ``last.pt`` every N steps (and on SIGINT and at the end).
@@ -186,6 +190,9 @@ class TrainConfig:
         device: ``auto`` (CUDA when present, else CPU), ``cpu`` or ``cuda``.
         bf16: bfloat16 autocast on CUDA (ignored on CPU).
         threads: torch threads on CPU (0: torch's default).
+        sync_batchnorm: with several processes, BatchNorm statistics over the global batch (so the
+            run is the single-process run); off, each process normalises its own part. No effect
+            on a single process.
     """
 
     steps: int = 10000
@@ -197,6 +204,7 @@ class TrainConfig:
     device: str = "auto"
     bf16: bool = True
     threads: int = 0
+    sync_batchnorm: bool = True
 
     def __post_init__(self) -> None:
         if min(self.steps, self.batch_size, self.val_every, self.checkpoint_every, self.log_every) < 1:
@@ -315,6 +323,9 @@ class RecoveryConfig:
                   "autoencoder": ("model", "data", "loss", "discriminator", "began")}[self.task]
         for k in unused:
             d.pop(k)
+        for section, key in LATER_SETTINGS:
+            if section in d and d[section][key] == getattr(type(getattr(self, section))(), key):
+                d[section].pop(key)
         if self.task == "hmr_blsm":
             d.pop("task")  # the layout of the first HMR-BLSM checkpoints
         return d

@@ -6,6 +6,13 @@ warm-up then cosine schedule), then, with the discriminator on, one Adam update 
 discriminator on real poses (:func:`recovery.data.real_poses`) against the detached predictions
 (least squares, HMR Eq. 6). A NaN or infinite loss stops training with the step and the batch's
 sample keys ``(epoch, item, dataset, sample index, person)``.
+
+With several processes (:mod:`recovery.distributed`) each rank steps on its part of the global batch:
+the regressor inside DistributedDataParallel (BatchNorm synchronised with
+``train.sync_batchnorm``), each loss term given as the rank's share (:func:`recovery.distributed.
+share_normaliser` for the 2D keypoints, whose count of visible keypoints varies), the real poses
+drawn for the global batch and split like it, and the discriminator's gradients averaged over the
+ranks; the logged values are the global ones, equal on every rank.
 """
 
 from __future__ import annotations
@@ -18,6 +25,7 @@ import torch
 from torch import nn
 
 from blsm.joint_limits import angles_from_unconstrained
+from recovery import distributed as D
 from recovery import losses as L
 from recovery import metrics as M
 from recovery.config import RecoveryConfig
@@ -72,6 +80,8 @@ class HMRTask:
             raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
         self.crop = cfg.data.crop
         self.model = build_model(cfg, body, init)
+        self.net: nn.Module = self.model  # the training forward: the DDP wrapper with several processes
+        self.world, self.rank = 1, 0
         o = cfg.optim
         self.opt = torch.optim.AdamW(self.model.parameters(), lr=o.lr, weight_decay=o.weight_decay)
         total = cfg.train.steps
@@ -115,6 +125,14 @@ class HMRTask:
             m.to(device)
         self.amp = device.type == "cuda" and self.cfg.train.bf16
 
+    def distribute(self, env: D.DistEnv, device: torch.device) -> None:
+        """The regressor inside DDP (SyncBatchNorm first with ``train.sync_batchnorm``); checkpoints
+        keep saving the unwrapped network, whose state dict a single process loads."""
+        if self.cfg.train.sync_batchnorm:
+            self.model = D.convert_sync_batchnorm(self.model, device)
+        self.net = D.wrap(self.model, env, device)
+        self.world, self.rank = env.world_size, env.rank
+
     def _autocast(self) -> Any:
         if self.amp:
             return torch.autocast("cuda", dtype=torch.bfloat16)
@@ -125,11 +143,15 @@ class HMRTask:
         """The weighted loss terms of a batch (on the task's device) and the prediction."""
         cfg, w = self.cfg, self.cfg.loss
         with self._autocast():
-            pred = self.model(batch["image"]).float()
+            pred = self.net(batch["image"]).float()
         out = predict_body(self.body, pred, batch["K_crop"], self.crop)
+        # Each term is this rank's share: the mean of the ranks' terms is the global loss (module
+        # docstring). The plain means are shares already, the ranks' parts being of equal size.
         terms: dict[str, torch.Tensor] = {}
         if w.keypoints_2d:
-            terms["kp2d"] = w.keypoints_2d * L.keypoint_2d_loss(out.keypoints_2d, batch["keypoints_2d"], self.crop)
+            kp2 = batch["keypoints_2d"]
+            terms["kp2d"] = w.keypoints_2d * L.keypoint_2d_loss(out.keypoints_2d, kp2, self.crop,
+                                                                D.share_normaliser(kp2[..., 2].sum()))
         if w.keypoints_3d:
             terms["kp3d"] = w.keypoints_3d * L.keypoint_3d_loss(out.keypoints_3d, batch["keypoints_3d"])
         limits = self.body.dof_limits
@@ -159,30 +181,41 @@ class HMRTask:
         return angles_from_unconstrained(x, self.body.dof_limits)
 
     def training_step(self, batch: dict[str, torch.Tensor], step: int) -> dict[str, float]:
+        """One update on this rank's part of the batch; returns the global losses."""
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         self.model.train()
         terms, (pred, _) = self.losses(batch)
         total = torch.stack(list(terms.values())).sum()
-        L.check_finite({**terms, "total": total}, step, batch["key"].cpu())
+        names = [*terms, "total"]
+        values = D.rank_mean(torch.stack([*terms.values(), total]).detach())  # (T + 1,) global values
+        _check_finite(dict(zip(names, values, strict=True)), step, batch["key"])
         self.opt.zero_grad(set_to_none=True)
-        total.backward()
+        total.backward()  # DDP averages the ranks' gradients: the global loss's gradient
         if self.cfg.optim.grad_clip:
             nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.optim.grad_clip)
         self.opt.step()
         self.sched.step()
-        logs = {k: float(v.detach()) for k, v in terms.items()}
-        logs["total"] = float(total.detach())
+        logs = {k: float(v) for k, v in zip(names, values, strict=True)}
         if self.disc is not None:
             fake = self._fake_angles(pred).detach()
-            real = self.real.sample(fake.shape[0], self.generator).to(self.device)
+            real = self._real_poses(fake.shape[0])
             d_loss = L.lsgan_discriminator_loss(self.disc(real), self.disc(fake))
-            L.check_finite({"disc": d_loss}, step, batch["key"].cpu())
+            d_value = D.rank_mean(d_loss.detach())
+            _check_finite({"disc": d_value}, step, batch["key"])
             self.d_opt.zero_grad(set_to_none=True)
             d_loss.backward()
+            D.average_gradients(self.disc.parameters())
             self.d_opt.step()
-            logs["disc"] = float(d_loss.detach())
+            logs["disc"] = float(d_value)
         logs["lr"] = float(self.sched.get_last_lr()[0])
         return logs
+
+    def _real_poses(self, n: int) -> torch.Tensor:
+        """(n, 47) this rank's real poses: its part of the ``n W`` drawn for the global batch (every
+        rank draws them all, so the generator stays the same everywhere and they are the
+        single-process draws)."""
+        real = self.real.sample(n * self.world, self.generator)
+        return real[self.rank * n : (self.rank + 1) * n].to(self.device)
 
     @torch.no_grad()
     def predict(self, images: torch.Tensor, k_crop: torch.Tensor) -> Any:
@@ -205,3 +238,11 @@ class HMRTask:
             gt = body_outputs(self.body, batch["pose"], batch["global_orient"], batch["bone"], batch["shape"])
             err["pve_mm"].append(M.mpjpe(out.vertices, gt.vertices) * 1000)
         return {k: float(torch.cat(v).mean()) for k, v in err.items() if v}
+
+
+def _check_finite(losses: dict[str, torch.Tensor], step: int, keys: torch.Tensor) -> None:
+    """:func:`recovery.losses.check_finite` of global values: every rank raises at the same step,
+    naming the samples of the whole batch."""
+    if all(bool(torch.isfinite(v).all()) for v in losses.values()):
+        return
+    L.check_finite(losses, step, D.gather(keys).cpu())

@@ -10,12 +10,16 @@ from __future__ import annotations
 import torch
 
 
-def keypoint_2d_loss(pred: torch.Tensor, target: torch.Tensor, crop: int) -> torch.Tensor:
+def keypoint_2d_loss(pred: torch.Tensor, target: torch.Tensor, crop: int,
+                     normaliser: torch.Tensor | None = None) -> torch.Tensor:
     """L1 between 2D keypoints in crop coordinates normalised to [-0.5, 0.5], weighted by visibility.
 
     Args:
         pred: (B, K, 2) pixels. target: (B, K, 3) pixels and visibility (0 / 1).
         crop: crop side in pixels.
+        normaliser: () what the sum is divided by; default the number of visible keypoints (at
+            least 1). One process' share of the loss over several processes' batches passes
+            :func:`recovery.distributed.share_normaliser` of its visible count.
 
     Returns:
         sum over visible keypoints of the L1 distance, divided by the number of visible keypoints
@@ -23,7 +27,7 @@ def keypoint_2d_loss(pred: torch.Tensor, target: torch.Tensor, crop: int) -> tor
     """
     w = target[..., 2]
     err = ((pred - target[..., :2]) / crop).abs().sum(-1)  # (B, K)
-    return (err * w).sum() / w.sum().clamp(min=1.0)
+    return (err * w).sum() / (w.sum().clamp(min=1.0) if normaliser is None else normaliser)
 
 
 def keypoint_3d_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:

@@ -6,6 +6,11 @@ Everything the run depends on is a function of the config and its seed: the cach
 (:func:`recovery.data.build_cache`), Theta_0 is the training caches' mean, the real poses are drawn
 with the seed, and the data order and augmentation come from :class:`recovery.data.ResumableSampler`
 and :class:`recovery.data.BatchAugment`.
+
+Under ``torchrun`` (HMR-BLSM only) every process runs this with the same config: rank 0 builds the
+caches while the others wait, each process reads its part of every global batch
+(:class:`recovery.data.ShardedBatches`), and rank 0 alone prints and writes the run folder
+(:mod:`recovery.distributed`, docs/recovery.md).
 """
 
 from __future__ import annotations
@@ -18,11 +23,13 @@ import torch
 import blsm
 from blsm.io import sha256_file
 from blsm.model import DEFAULT_MODEL
+from recovery import distributed as D
 from recovery.config import RecoveryConfig
 from recovery.data import (
     BatchAugment,
     CropCache,
     ResumableSampler,
+    ShardedBatches,
     augment_config,
     build_cache,
     cache_folder,
@@ -160,7 +167,10 @@ def mesh_loaders(cfg: RecoveryConfig, task: Any) -> tuple[Any, Any, int]:
     return make_loader, list(val.split(64)), len(source.people)
 
 
-def loaders(cfg: RecoveryConfig, task: Any, train: CropCache, val: CropCache | None) -> tuple[Any, Any]:
+def loaders(cfg: RecoveryConfig, task: Any, train: CropCache, val: CropCache | None,
+            env: D.DistEnv = D.SINGLE) -> tuple[Any, Any]:
+    """The training batches from a position of the global order (this process' part of each
+    global batch) and the validation loader."""
     d = cfg.data
     aug = BatchAugment(d.crop, train.context, augment_config(d.augment), cfg.train.seed, task.body.dof_mirror,
                        train.keypoint_names)
@@ -168,8 +178,9 @@ def loaders(cfg: RecoveryConfig, task: Any, train: CropCache, val: CropCache | N
     def make_loader(consumed: int) -> Any:
         n = len(train)
         sampler = ResumableSampler(n, cfg.train.seed, consumed // n, consumed % n)
-        dl = torch.utils.data.DataLoader(train, batch_size=cfg.train.batch_size, sampler=sampler, collate_fn=aug,
-                                         num_workers=d.workers, persistent_workers=False, prefetch_factor=4 if d.workers else None)
+        batches = ShardedBatches(sampler, cfg.train.batch_size, env.rank, env.world_size)
+        dl = torch.utils.data.DataLoader(train, batch_sampler=batches, collate_fn=aug, num_workers=d.workers,
+                                         persistent_workers=False, prefetch_factor=4 if d.workers else None)
         return iter(dl)
 
     val_loader = None
@@ -181,22 +192,44 @@ def loaders(cfg: RecoveryConfig, task: Any, train: CropCache, val: CropCache | N
 
 
 def train(cfg: RecoveryConfig, out: str | Path, resume: bool = False, log: Any = print) -> str:
-    """Run (or continue) a training run into ``out``; returns "done" or "interrupted"."""
-    out = Path(out)
+    """Run (or continue) a training run into ``out``; returns "done" or "interrupted".
+
+    Under ``torchrun`` (``WORLD_SIZE`` > 1) this process joins the process group for the run and
+    leaves it at the end (module docstring).
+    """
+    env = D.from_environment()
+    if env.distributed and cfg.task != "hmr_blsm":
+        raise ValueError(f"task {cfg.task} trains on one process only; run it without torchrun")
+    if cfg.train.batch_size % env.world_size:
+        raise ValueError(f"train.batch_size {cfg.train.batch_size} (the global batch) must be divisible by "
+                         f"the {env.world_size} processes")
+    device = D.init(env, resolve_device(cfg.train.device))
+    try:
+        return _train(cfg, Path(out), resume, log if env.main else (lambda *a: None), env, device)
+    finally:
+        D.shutdown()
+
+
+def _train(cfg: RecoveryConfig, out: Path, resume: bool, log: Any, env: D.DistEnv,
+           device: torch.device) -> str:
     last = out / "last.pt"
     if last.is_file() and not resume:
         raise ValueError(f"{last}: a run exists here; use --resume to continue it or another --out")
+    if env.distributed:  # one writer per cache: rank 0 builds, the others then find them complete
+        if env.main:
+            caches(cfg, log)
+        D.barrier()
     task, train_ds, val_ds = setup(cfg, log)
     if cfg.task == "autoencoder":
         make_loader, val_loader, epoch_size = mesh_loaders(cfg, task)
     else:
-        make_loader, val_loader = loaders(cfg, task, train_ds, val_ds)
+        make_loader, val_loader = loaders(cfg, task, train_ds, val_ds, env)
         epoch_size = len(train_ds)
     trainer = Trainer(task, out, make_loader, val_loader, steps=cfg.train.steps, batch_size=cfg.train.batch_size,
                       val_every=cfg.train.val_every, checkpoint_every=cfg.train.checkpoint_every,
                       log_every=cfg.train.log_every, config=cfg.to_dict(), epoch_size=epoch_size,
-                      device=resolve_device(cfg.train.device),
-                      best_metric="vertex_mm" if cfg.task == "autoencoder" else "pa_mpjpe_mm")
+                      device=device, best_metric="vertex_mm" if cfg.task == "autoencoder" else "pa_mpjpe_mm",
+                      env=env, seed=cfg.train.seed)
     if resume and last.is_file():
         trainer.resume(last)
         log(f"[recovery] resumed {last} at step {trainer.step}")
@@ -205,7 +238,9 @@ def train(cfg: RecoveryConfig, out: str | Path, resume: bool = False, log: Any =
     if cfg.task == "autoencoder":
         log(f"[recovery] autoencoder: meshes of {epoch_size} population members, {cfg.train.steps} steps of {cfg.train.batch_size}")
     else:
+        part = cfg.train.batch_size // env.world_size
+        procs = f" ({env.world_size} processes of {part})" if env.distributed else ""
         log(f"[recovery] {cfg.task}: {len(train_ds)} people from {len(cfg.data.train)} datasets; "
             f"val: {0 if val_ds is None else min(len(val_ds), cfg.data.max_val or len(val_ds))} people; "
-            f"{cfg.model.backbone}, {cfg.train.steps} steps of {cfg.train.batch_size}")
+            f"{cfg.model.backbone}, {cfg.train.steps} steps of {cfg.train.batch_size}{procs}")
     return trainer.run()

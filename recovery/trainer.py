@@ -12,6 +12,11 @@ updates; a non-finite loss raises) and the validation metrics.
 scheduler's state, the task's own random state, torch's RNG, the step and the position in the
 data order; ``resume`` continues with the same batches, augmentation and dropout masks as an
 uninterrupted run (on CPU; GPU kernels are not bit-reproducible).
+
+Under ``torchrun`` (:mod:`recovery.distributed`) every process runs this loop on its part of each
+global batch; rank 0 alone prints, validates, logs and writes checkpoints while the others wait for
+it, a Ctrl-C on any process stops them all after the same step, and ``last.pt`` also holds every
+rank's torch RNG (each rank draws its own dropout masks).
 """
 
 from __future__ import annotations
@@ -30,6 +35,8 @@ from typing import Any, Protocol
 
 import torch
 
+from recovery import distributed as D
+
 CHECKPOINT_FORMAT = "recovery-checkpoint"
 CHECKPOINT_VERSION = 1
 
@@ -46,6 +53,10 @@ class Task(Protocol):
     def schedulers(self) -> dict[str, Any]: ...
 
     def to(self, device: torch.device) -> None: ...
+
+    def distribute(self, env: D.DistEnv, device: torch.device) -> None:
+        """Wrap the networks for several processes (called after ``to`` when ``env.distributed``)."""
+        ...
 
     def training_step(self, batch: dict[str, torch.Tensor], step: int) -> dict[str, float]: ...
 
@@ -96,7 +107,8 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
 
 
 class Progress:
-    """One status line: step, rate, ETA, losses (redrawn on a terminal, every 30 s otherwise)."""
+    """One status line: step, rate, ETA, losses (redrawn on a terminal, every 30 s otherwise; not
+    written when ``stream`` is None: the ranks other than 0)."""
 
     def __init__(self, total: int, start: int, stream: Any = sys.stderr) -> None:
         self.total, self.start, self.stream = total, start, stream
@@ -112,6 +124,8 @@ class Progress:
         eta_s = "?" if not math.isfinite(eta) else time.strftime("%H:%M:%S", time.gmtime(eta))
         body = " ".join(f"{k} {v:.4g}" for k, v in losses.items())
         line = f"[train] step {step}/{self.total} ({100 * step / self.total:.0f} %) {ips:.1f} img/s ETA {eta_s} | {body}"
+        if self.stream is None:
+            return line
         if self.tty:
             self.stream.write("\r" + line[:200].ljust(120))
             self.stream.flush()
@@ -129,29 +143,36 @@ class Trainer:
         task: the model's step and metrics.
         out: run folder (``last.pt``, ``best.pt``, ``log.jsonl``, ``log.csv``, ``curves.png``).
         make_loader: ``consumed -> iterator of batches`` continuing the data order after
-            ``consumed`` items (the order is endless: epoch ``consumed // epoch_size``).
+            ``consumed`` items (the order is endless: epoch ``consumed // epoch_size``); with
+            several processes ``consumed`` counts global batches' items and each process gets its
+            part of every global batch.
         val_loader: validation batches (re-iterated each time), or None.
         steps, batch_size, val_every, checkpoint_every, log_every: the schedule.
         config: the run's configuration (stored in checkpoints; a resume must match it).
         best_metric: the validation metric whose minimum writes ``best.pt``.
         epoch_size: items per epoch (for the logged epoch).
+        env: this process among torchrun's (:data:`recovery.distributed.SINGLE` for a plain run).
+        seed: the run's seed (rank ``r > 0``'s own random stream is derived from it).
     """
 
     def __init__(self, task: Task, out: str | Path, make_loader: Callable[[int, int], Iterator[dict[str, Any]]],
                  val_loader: Any, *, steps: int, batch_size: int, val_every: int, checkpoint_every: int,
                  log_every: int, config: dict[str, Any], epoch_size: int, device: torch.device,
-                 best_metric: str = "pa_mpjpe_mm") -> None:
+                 best_metric: str = "pa_mpjpe_mm", env: D.DistEnv = D.SINGLE, seed: int = 0) -> None:
         self.task, self.out, self.make_loader, self.val_loader = task, Path(out), make_loader, val_loader
         self.steps, self.batch_size = steps, batch_size
         self.val_every, self.checkpoint_every, self.log_every = val_every, checkpoint_every, log_every
         self.config, self.epoch_size, self.device, self.best_metric = config, epoch_size, device, best_metric
+        self.env, self.seed = env, seed
         self.step, self.consumed = 0, 0
         self.best = float("inf")
         self._stop = False
         self._logs_since_plot = 0
+        self._rank_rng: list[Any] | None = None  # every rank's RNG, restored by _run (several processes)
 
     # -- checkpoints
-    def state(self) -> dict[str, Any]:
+    def state(self, rank_rng: list[Any] | None = None) -> dict[str, Any]:
+        """The checkpoint; ``rank_rng``: every rank's ``(torch RNG, CUDA RNG)`` (several processes)."""
         t = self.task
         return {
             "format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "task": t.name,
@@ -163,13 +184,27 @@ class Trainer:
             "task_state": t.extra_state(),
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+            "world_size": self.env.world_size,
+            **({"rank_rng": rank_rng} if rank_rng is not None else {}),
             "saved": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
 
     def save(self, name: str = "last.pt") -> Path:
+        """Write ``name`` (rank 0; with several processes every rank calls this and waits for it)."""
         path = self.out / name
-        save_atomic(self.state(), path)
+        rank_rng = self._gather_rng() if self.env.distributed else None
+        if self.env.main:
+            save_atomic(self.state(rank_rng), path)
+        D.barrier()
         return path
+
+    def _gather_rng(self) -> list[Any]:
+        import torch.distributed as dist
+
+        mine = (torch.get_rng_state(), torch.cuda.get_rng_state() if self.device.type == "cuda" else None)
+        every: list[Any] = [None] * self.env.world_size
+        dist.all_gather_object(every, mine)
+        return every
 
     def resume(self, path: str | Path) -> None:
         """Restore everything from ``path``; a checkpoint of another task or config is a ValueError."""
@@ -191,15 +226,19 @@ class Trainer:
             s.load_state_dict(ck["schedulers"][k])
         t.load_extra_state(ck["task_state"])
         torch.set_rng_state(ck["torch_rng"])
-        if ck.get("cuda_rng") and torch.cuda.is_available():
+        if ck.get("cuda_rng") and torch.cuda.is_available() and not self.env.distributed:
             torch.cuda.set_rng_state_all(ck["cuda_rng"])
         self.step, self.consumed, self.best = ck["step"], ck["consumed"], ck["best"]
-        _truncate_logs(self.out, self.step)
+        self._rank_rng = ck.get("rank_rng")
+        if self.env.main:
+            _truncate_logs(self.out, self.step)
+        D.barrier()  # the logs are cut before any rank trains on
 
     # -- the loop
     def run(self) -> str:
         """Train to ``steps``; returns "done" or "interrupted" (after writing ``last.pt``)."""
-        self.out.mkdir(parents=True, exist_ok=True)
+        if self.env.main:
+            self.out.mkdir(parents=True, exist_ok=True)
         previous = signal.signal(signal.SIGINT, self._on_sigint)
         try:
             return self._run()
@@ -210,11 +249,37 @@ class Trainer:
         if self._stop:  # a second Ctrl-C: stop now (the last checkpoint stays)
             raise KeyboardInterrupt
         self._stop = True
-        sys.stderr.write("\n[train] interrupt: writing the checkpoint after this step (Ctrl-C again to abort)\n")
+        if self.env.main:
+            sys.stderr.write("\n[train] interrupt: writing the checkpoint after this step "
+                             "(Ctrl-C again to abort)\n")
+
+    def _stopping(self) -> bool:
+        """Whether any process was interrupted (all stop after the same step). ``_stop`` is only
+        read here: the handler may set it while the all-reduce runs."""
+        if not self.env.distributed:
+            return self._stop
+        return bool(D.all_sum(torch.tensor([float(self._stop)], device=self.device)).item() > 0)
+
+    def _seed_ranks(self) -> None:
+        """Each rank's own random stream (dropout masks): rank 0 keeps the single-process stream,
+        rank r > 0 one derived from the seed; a resume restores each rank's saved state, and ranks a
+        checkpoint of fewer processes lacks start a stream derived from the seed, rank and step."""
+        r = self.env.rank
+        saved = self._rank_rng
+        if saved is not None and r < len(saved):
+            cpu, cuda = saved[r]
+            torch.set_rng_state(cpu)
+            if cuda is not None and self.device.type == "cuda":
+                torch.cuda.set_rng_state(cuda)
+        elif r > 0:
+            torch.manual_seed(D.rank_seed(self.seed, r, self.step))
 
     def _run(self) -> str:
         self.task.to(self.device)
-        progress = Progress(self.steps, self.step)
+        if self.env.distributed:
+            self.task.distribute(self.env, self.device)
+            self._seed_ranks()
+        progress = Progress(self.steps, self.step, sys.stderr if self.env.main else None)
         # Making a DataLoader iterator draws from torch's RNG; a resumed run makes one more than an
         # uninterrupted one, so the draw must not shift the dropout masks that follow.
         rng = torch.get_rng_state()
@@ -225,38 +290,52 @@ class Trainer:
         while self.step < self.steps:
             batch = next(loader)
             keys = batch["key"]
-            self.consumed += int(keys.shape[0])
-            losses = self.task.training_step(batch, self.step)
+            n = int(keys.shape[0]) * self.env.world_size  # the global batch
+            self.consumed += n
+            losses = self.task.training_step(batch, self.step)  # global values of the losses
             self.step += 1
-            images += int(keys.shape[0])
+            images += n
             for k, v in losses.items():
                 sums[k] = sums.get(k, 0.0) + v
             count += 1
             if self.step % self.log_every == 0 or self.step == self.steps:
                 mean = {k: v / count for k, v in sums.items()}
                 progress.update(self.step, images, mean)
-                self._log({"kind": "train", "step": self.step, "epoch": self.consumed / self.epoch_size, "time": time.time(), **mean})
+                if self.env.main:
+                    self._log({"kind": "train", "step": self.step, "epoch": self.consumed / self.epoch_size,
+                               "time": time.time(), **mean})
                 sums, count = {}, 0
             if self.val_loader is not None and (self.step % self.val_every == 0 or self.step == self.steps):
                 self.validate()
-            if self.step % self.checkpoint_every == 0 or self.step == self.steps or self._stop:
+            stop = self._stopping()
+            if self.step % self.checkpoint_every == 0 or self.step == self.steps or stop:
                 self.save()
-            if self._stop:
+            if stop:
                 progress.update(self.step, images, {}, force=True)
                 return "interrupted"
         progress.update(self.step, images, {}, force=True)
         return "done"
 
     def validate(self) -> dict[str, float]:
-        t0 = time.perf_counter()
-        metrics = self.task.validate(self.val_loader)
-        rec = {"kind": "val", "step": self.step, "time": time.time(), "seconds": time.perf_counter() - t0, **metrics}
-        self._log(rec)
-        sys.stderr.write(("\n" if sys.stderr.isatty() else "") + "[val] step {}: {}\n".format(
-            self.step, " ".join(f"{k} {v:.4g}" for k, v in metrics.items())))
-        value = metrics.get(self.best_metric, float("inf"))
-        if value < self.best:
-            self.best = value
+        """Validate on rank 0 (the others wait); writes ``best.pt`` at a new minimum. Returns the
+        metrics (empty on the other ranks)."""
+        metrics: dict[str, float] = {}
+        improved = False
+        if self.env.main:
+            t0 = time.perf_counter()
+            metrics = self.task.validate(self.val_loader)
+            rec = {"kind": "val", "step": self.step, "time": time.time(), "seconds": time.perf_counter() - t0,
+                   **metrics}
+            self._log(rec)
+            sys.stderr.write(("\n" if sys.stderr.isatty() else "") + "[val] step {}: {}\n".format(
+                self.step, " ".join(f"{k} {v:.4g}" for k, v in metrics.items())))
+            value = metrics.get(self.best_metric, float("inf"))
+            improved = value < self.best
+        if self.env.distributed:  # rank 0's verdict (the others wait here during validation)
+            improved = bool(D.all_sum(torch.tensor([float(improved)], device=self.device)).item() > 0)
+        if improved:
+            if self.env.main:
+                self.best = metrics[self.best_metric]
             self.save("best.pt")
         return metrics
 
