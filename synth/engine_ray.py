@@ -36,11 +36,28 @@ import os
 import socket
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from synth.config import GeneratorConfig
 from synth.shards import ShardWriter, WriteError, shard_name, write_shard
+
+@dataclass(frozen=True)
+class Worker:
+    """What the engine needs of the generator (passed in by :func:`synth.generate.generate`, which
+    imports this module, so that this module does not import it back).
+
+    Attributes:
+        init: ``(cfg_json, out, variant, threads, pool_worker)``: load a worker's state.
+        make_one: ``index -> (index, fields or None, error type, message)``: make one sample.
+        log: one ``[synth]`` line on stderr.
+    """
+
+    init: Callable[..., None]
+    make_one: Callable[[int], tuple[int, dict[str, bytes] | None, str, str]]
+    log: Callable[[str], None]
+
 
 _KEY: str = ""
 _MADE = 0
@@ -50,25 +67,24 @@ rewrite per shard would be the driver's main work. A driver killed in between lo
 seconds of listed shards; ``--resume`` makes them again (the same bytes)."""
 
 
-def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int, start: int, stop: int,
-                skip_bad: bool, counter: Any) -> dict[str, Any]:
-    """Make and write shard ``shard`` (samples ``start .. stop - 1``) in a Ray worker process.
+def _shard_task(worker: Worker, cfg_json: dict, out: str, variant: str, threads: int, shard: int, start: int,
+                stop: int, skip_bad: bool, counter: Any) -> dict[str, Any]:
+    """Make and write shard ``shard`` (samples ``start .. stop - 1``) in a Ray worker process, with
+    the generator's worker functions (:class:`Worker`).
 
     Returns:
         ``{"shard", "sha256", "samples", "first", "skipped"}``, or ``{"shard", "error"}`` for a
         sample that failed (without ``skip_bad``), or ``{"shard", "write_error"}``.
     """
-    from synth import generate as gen
-
     global _KEY, _MADE
     key = json.dumps([cfg_json, out, variant, threads], sort_keys=True)
     if key != _KEY or _MADE >= int(cfg_json["render"]["recycle_after"]):
-        gen._init_worker(cfg_json, out, variant, threads, True)
+        worker.init(cfg_json, out, variant, threads, True)
         _KEY, _MADE = key, 0
     samples: list[tuple[int, dict[str, bytes]]] = []
     left_out: list[dict[str, Any]] = []
     for i in range(start, stop):
-        index, fields, kind, msg = gen._make_one(i)
+        index, fields, kind, msg = worker.make_one(i)
         _MADE += 1
         counter.tick.remote(shard, i - start + 1)
         if fields is None:
@@ -125,16 +141,23 @@ def _connect(address: str | None) -> bool:
 
 def run_ray(
     cfg: GeneratorConfig,
+    cfg_json: dict[str, Any],
     out: Path,
     writer: ShardWriter,
     plan: tuple[list[int], dict[str, Any], list[dict[str, Any]]],
     variant: str,
     address: str | None,
-    progress: bool,
-    stop_after: int | None,
+    worker: Worker,
+    meter: Any,
     on_image: Callable[[int], None] | None,
 ) -> dict[str, Any]:
     """The shards of :func:`synth.generate.generate` as Ray tasks (module docstring); the manifest.
+
+    Args:
+        cfg_json: ``cfg`` as JSON (what a worker's ``init`` takes).
+        plan: the shards to make (all of them are made), the finished ones, their skipped samples.
+        worker: the generator's worker functions.
+        meter: the progress meter (``tick()``, ``shard(msg)``, ``close()``, ``made``).
 
     Raises:
         ValueError: the cluster cannot be reached; a failed write (:class:`WriteError`).
@@ -146,31 +169,26 @@ def run_ray(
         import ray.util.scheduling_strategies
     except ImportError:
         raise ValueError("--engine ray needs Ray: pip install 'blsm-synth[ray]'") from None
-    from synth import generate as gen
-
     todo, done, skipped = plan
     done, skipped = dict(done), list(skipped)
-    if stop_after is not None:
-        todo = todo[:stop_after]
     total = sum(len(writer.indices(s)) for s in todo)
     started = _connect(address)
     try:
         nodes = [n for n in ray.nodes() if n.get("Alive")]
         cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
-        gen._log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
+        worker.log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
                  f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
         task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
                                                retry_exceptions=False)
         # The counter lives on the driver's node: it must outlive any node that leaves.
         here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=True)
         counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
-        cfg_json, where = ray.put(gen._cfg_json(cfg)), str(out.resolve())
+        cfg_ref, where = ray.put(cfg_json), str(out.resolve())
         refs = {
-            task.remote(cfg_json, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
+            task.remote(worker, cfg_ref, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
                         writer.indices(s).stop, cfg.skip_bad, counter): s
             for s in todo
         }
-        meter = gen._Progress(total, progress)
         waiting, shards_done, last_manifest = list(refs), len(done), 0.0
         try:
             while waiting:
@@ -207,7 +225,7 @@ def run_ray(
                     meter.shard(f"{shard_name(s)}: {res['samples']} samples ({shards_done}/{len(writer.shards())} shards{part})")
             retried = ray.get(counter.retried.remote())
             if retried:
-                gen._log(f"{len(retried)} shards made again after their worker or node was lost: "
+                worker.log(f"{len(retried)} shards made again after their worker or node was lost: "
                          + ", ".join(shard_name(x) for x in retried))
         finally:
             for ref in waiting:
@@ -219,11 +237,7 @@ def run_ray(
     finally:
         if started:
             ray.shutdown()
-    man = writer.write_manifest(done, skipped)
-    n, lost = sum(e["samples"] for e in man["shards"].values()), len(man["skipped"])
-    gen._log(f"done: {n} samples in {len(man['shards'])} shards, {gen._hms(meter.elapsed())}"
-             + (f", {lost} skipped" if lost else ""))
-    return man
+    return writer.write_manifest(done, skipped)
 
 
 def _remove_dead_temporaries(out: Path, done: dict[str, Any]) -> None:

@@ -563,9 +563,14 @@ def generate(
                 raise WriteError.of(Path(exc.filename or out / SUBJECTS), exc) from None
             raise
         if engine == "ray":
-            from synth.engine_ray import run_ray
+            from synth.engine_ray import Worker, run_ray
 
-            return run_ray(cfg, out, writer, (todo, done, skipped), variant, address, progress, stop_after, on_image)
+            todo = todo[:stop_after] if stop_after is not None else todo
+            meter = _Progress(sum(len(writer.indices(s)) for s in todo), progress)
+            man = run_ray(cfg, _cfg_json(cfg), out, writer, (todo, done, skipped), variant, address,
+                          Worker(_init_worker, _make_one, _log), meter, on_image)
+            _log_done(man, meter)
+            return man
         return _run(cfg, out, writer, (todo, done, skipped), variant, workers, progress, stop_after, on_image)
 
 
@@ -677,9 +682,13 @@ def _run(
             pool.terminate()
             pool.join()
     meter.close()
+    _log_done(man, meter)
+    return man
+
+
+def _log_done(man: dict[str, Any], meter: _Progress) -> None:
     n, lost = sum(e["samples"] for e in man["shards"].values()), len(man["skipped"])
     _log(f"done: {n} samples in {len(man['shards'])} shards, {_hms(meter.elapsed())}" + (f", {lost} skipped" if lost else ""))
-    return man
 
 
 class _Progress:

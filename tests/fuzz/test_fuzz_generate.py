@@ -68,7 +68,10 @@ def quick(model, monkeypatch):
     import blsm
 
     monkeypatch.setattr(blsm, "load", lambda *a, **k: model)
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
 
 
 def write_exr(path: Path, rgb: np.ndarray) -> Path:
