@@ -14,7 +14,7 @@ a warm-up), and, from the timed runs, (Ray time - local time) / shards.
 Ray binds the host's address unless it is alone with loopback, so the script re-runs itself inside
 ``unshare -n`` (a network namespace with only ``lo``); it needs root (CI has it).
 
-    python benchmarks/bench_scale.py [--out docs/benchmarks.md] [--images 240] [--shard-size 20] [--rounds 2]
+    python benchmarks/bench_scale.py [--out docs/benchmarks.md] [--images 600] [--shard-size 20] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -79,6 +79,7 @@ def _inside(args: argparse.Namespace) -> None:
     ray.shutdown()
 
     times: dict[str, list[float]] = {"local": [], "ray": []}
+    firsts: dict[str, list[float]] = {"local": [], "ray": []}  # seconds to the first image
     for r in range(args.rounds):
         for engine in ("local", "ray"):
             out = tmp / f"{engine}_{r}"
@@ -87,7 +88,12 @@ def _inside(args: argparse.Namespace) -> None:
             t0 = time.perf_counter()
             if engine == "ray":  # a driver of its own, as a `synth generate --address` run: fresh workers
                 ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR)
-            generate(cfg, out, workers=2, engine=engine, progress=False)
+
+            def first_image(made: int, engine: str = engine, t0: float = t0) -> None:
+                if made >= 1 and len(firsts[engine]) == r:
+                    firsts[engine].append(time.perf_counter() - t0)
+
+            generate(cfg, out, workers=2, engine=engine, progress=False, on_image=first_image)
             if engine == "ray":
                 ray.shutdown()
             times[engine].append(time.perf_counter() - t0)
@@ -101,6 +107,8 @@ def _inside(args: argparse.Namespace) -> None:
     shutil.rmtree(tmp, ignore_errors=True)
 
     loc, ray_t = statistics.median(times["local"]), statistics.median(times["ray"])
+    steady = {e: statistics.median((args.images - 1) / (t - f) for t, f in zip(times[e], firsts[e], strict=True))
+              for e in times}
     ratio = loc / ray_t
     per_task = (ray_t - loc) / shards * 1e3
     import torch
@@ -118,10 +126,12 @@ def _inside(args: argparse.Namespace) -> None:
         f"**{ratio:.2f}** (target >= 0.9) |",
         "",
         f"Rounds (s): local {', '.join(f'{t:.1f}' for t in times['local'])}; "
-        f"Ray {', '.join(f'{t:.1f}' for t in times['ray'])}.",
+        f"Ray {', '.join(f'{t:.1f}' for t in times['ray'])}. Start-up, to the first image (median): local "
+        f"{statistics.median(firsts['local']):.1f} s, Ray {statistics.median(firsts['ray']):.1f} s (Ray's worker "
+        f"processes boot Ray before importing the generator); after it, local {steady['local']:.2f} and Ray "
+        f"{steady['ray']:.2f} images/s (ratio {steady['local'] and steady['ray'] / steady['local']:.2f}).",
         f"Per-task overhead: an empty task's round trip {trip_ms:.1f} ms; (Ray - local) / shards = {per_task:+.0f} ms "
-        "per shard of 20 images (negative: Ray's run was the faster; the local pool's main process receives every "
-        "sample through a pipe and writes every shard itself, Ray's tasks write their own shards).",
+        f"per shard of {args.shard_size} images, start-up included.",
     ]
     write_section(Path(args.out), "scale", "Generator on a Ray cluster vs the local pool (CPU)",
                   "benchmarks/bench_scale.py", lines)
@@ -131,9 +141,9 @@ def _inside(args: argparse.Namespace) -> None:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--out", default="docs/benchmarks.md")
-    p.add_argument("--images", type=int, default=240)
+    p.add_argument("--images", type=int, default=600)
     p.add_argument("--shard-size", type=int, default=20)
-    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.inside:

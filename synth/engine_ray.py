@@ -25,8 +25,8 @@ Design (docs/scaling.md has the how-to and the measurements):
   ``skip_bad`` it is listed in the manifest, without it the run stops with the one-line error and
   exit status 1 of a local run. A failed write (a full disk) is the local run's one-line error,
   exit status 2.
-- **Progress.** Every task ticks a counter actor per image; the driver prints one progress line
-  for the whole cluster.
+- **Progress.** Every task reports its images to a counter actor (at most every ``TICK_S``); the
+  driver prints one progress line for the whole cluster.
 """
 
 from __future__ import annotations
@@ -61,6 +61,8 @@ class Worker:
 
 _KEY: str = ""
 _MADE = 0
+TICK_S = 0.25
+"""A task reports its progress at most this often (and at its first and last image)."""
 MANIFEST_EVERY_S = 2.0
 """The driver rewrites the manifest at most this often (and at the end): with thousands of shards a
 rewrite per shard would be the driver's main work. A driver killed in between loses at most these
@@ -83,10 +85,13 @@ def _shard_task(worker: Worker, cfg_json: dict, out: str, variant: str, threads:
         _KEY, _MADE = key, 0
     samples: list[tuple[int, dict[str, bytes]]] = []
     left_out: list[dict[str, Any]] = []
+    last_tick = 0.0
     for i in range(start, stop):
         index, fields, kind, msg = worker.make_one(i)
         _MADE += 1
-        counter.tick.remote(shard, i - start + 1)
+        if i == start or i == stop - 1 or time.time() - last_tick >= TICK_S:
+            counter.tick.remote(shard, i - start + 1)
+            last_tick = time.time()
         if fields is None:
             if not skip_bad:
                 return {"shard": shard, "error": f"sample {i}: {msg}"}
@@ -111,7 +116,7 @@ class _Counter:
         self.restarted: set[int] = set()
 
     def tick(self, shard: int, made: int) -> None:
-        if made == 1 and shard in self.made:
+        if made == 1 and shard in self.made:  # a task's first report is at its first image
             self.restarted.add(shard)
         self.made[shard] = made
 
@@ -181,7 +186,9 @@ def run_ray(
         task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
                                                retry_exceptions=False)
         # The counter lives on the driver's node: it must outlive any node that leaves.
-        here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(ray.get_runtime_context().get_node_id(), soft=True)
+        # (hard affinity: a soft one let Ray place it on another node when the driver's was busy)
+        here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(
+            ray.get_runtime_context().get_node_id(), soft=False)
         counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
         cfg_ref, where = ray.put(cfg_json), str(out.resolve())
         refs = {

@@ -121,10 +121,6 @@ def main() -> None:
     summary["a_s"] = round(time.time() - t0, 1)
 
     removed: dict = {}
-    # Remove the node the driver is not attached to (the driver may attach to either raylet).
-    mine = ray.get_runtime_context().get_node_id()
-    victim = worker if worker.node_id != mine else cluster.head_node
-    summary["removed"] = "worker" if victim is worker else "head"
 
     def remove_node(made: int) -> None:
         if made >= 1 and not removed:  # at the driver's first look, about 0.5 s in: both nodes busy
@@ -138,6 +134,10 @@ def main() -> None:
     ray.shutdown()  # a driver whose workers take 0.3 s more per sample: every shard lasts over 1 s
     ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR,
              runtime_env=hook_env("ray_scenarios.slow_samples", work))
+    # Remove the node this driver is not attached to (a driver may attach to either raylet).
+    mine = ray.get_runtime_context().get_node_id()
+    victim = worker if worker.node_id != mine else cluster.head_node
+    summary["removed"] = "worker" if victim is worker else "head"
     log = io.StringIO()
     with contextlib.redirect_stderr(log):
         generate(cfg, fresh("b"), engine="ray", progress=False, on_image=remove_node)
