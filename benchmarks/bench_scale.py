@@ -89,7 +89,7 @@ def _inside(args: argparse.Namespace) -> None:
             if engine == "ray":  # a driver of its own, as a `synth generate --address` run: fresh workers
                 ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR)
 
-            def first_image(made: int, engine: str = engine, t0: float = t0) -> None:
+            def first_image(made: int, engine: str = engine, t0: float = t0, r: int = r) -> None:
                 if made >= 1 and len(firsts[engine]) == r:
                     firsts[engine].append(time.perf_counter() - t0)
 

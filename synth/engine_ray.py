@@ -43,6 +43,7 @@ from typing import Any
 from synth.config import GeneratorConfig
 from synth.shards import ShardWriter, WriteError, shard_name, write_shard
 
+
 @dataclass(frozen=True)
 class Worker:
     """What the engine needs of the generator (passed in by :func:`synth.generate.generate`, which
