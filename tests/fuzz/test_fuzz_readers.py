@@ -620,22 +620,36 @@ def test_recovery_predict_a_one_pixel_image(tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["mesh.obj", "overlay.png", "params.json"]
 
 
-@pytest.mark.parametrize("kind", ["unknown_key", "not_utf8", "not_yaml", "not_a_mapping", "folder"])
-def test_recovery_train_bad_configs(tmp_path, capsys, kind):
+# A malformed training config per program: (file bytes, or None for a folder / a missing file; the problem)
+TRAIN_CONFIGS = {
+    "recovery": {
+        "unknown_key": (b"optim: {learning_rate: 0.1}\n", "learning_rate"),
+        "not_utf8": (b"\xff\xfe optim: {lr: 0.1}\n", "UTF-8"),
+        "not_yaml": (b"optim: [1, 2\n", "YAML"),
+        "not_a_mapping": (b"- 1\n- 2\n", ""),
+        "folder": (None, ""),
+    },
+    "blsm train": {
+        "unknown_key": (b"regsiter: {}\n", "regsiter: unknown key"),
+        "not_utf8": (b"seed: 1 # \xe9\n", "not UTF-8 text"),
+        "not_yaml": (b"seed: [1\n", "not valid YAML"),
+        "not_a_mapping": (b"- 1\n", "expected a mapping"),
+        "missing": (None, "cannot read train config"),
+        "wrong_type": (b"run: 5\n", "run"),
+    },
+}
+
+
+@pytest.mark.parametrize("prog, kind", [(p, k) for p, kinds in TRAIN_CONFIGS.items() for k in kinds])
+def test_train_commands_bad_configs(tmp_path, capsys, prog, kind):
     cfg = tmp_path / "c.yaml"
-    problem = {"unknown_key": "learning_rate", "not_utf8": "UTF-8", "not_yaml": "YAML", "not_a_mapping": "",
-               "folder": ""}[kind]
-    if kind == "unknown_key":
-        cfg.write_text("optim: {learning_rate: 0.1}\n")
-    elif kind == "not_utf8":
-        cfg.write_bytes(b"\xff\xfe optim: {lr: 0.1}\n")
-    elif kind == "not_yaml":
-        cfg.write_text("optim: [1, 2\n")
-    elif kind == "not_a_mapping":
-        cfg.write_text("- 1\n- 2\n")
-    else:
+    data, problem = TRAIN_CONFIGS[prog][kind]
+    if data is not None:
+        cfg.write_bytes(data)
+    elif kind == "folder":
         cfg.mkdir()
-    _bad_input(capsys, "recovery", ["train", str(cfg), "--out", str(tmp_path / "run")], tmp_path, cfg, problem)
+    out = tmp_path / ("run" if prog == "recovery" else "m.npz")
+    _bad_input(capsys, prog, ["train", str(cfg), "--out", str(out)], tmp_path, cfg, problem)
 
 
 @pytest.mark.parametrize("kind", ["empty_folder", "garbage_manifest", "flipped_png_byte", "truncated_tar"])
@@ -715,21 +729,3 @@ def test_blsm_register_bad_scans(tmp_path, capsys, kind):
     bad, extra, problem = _bad_scan(kind, src)
     scans = sorted(str(p) for p in src.iterdir() if p.name.startswith("scan.") and p.suffix in (".npz", ".ply"))
     _bad_input(capsys, "blsm register", ["register", *scans, "--out", str(tmp_path / "reg"), *extra], tmp_path, bad, problem)
-
-
-@pytest.mark.parametrize("kind", ["unknown_key", "not_utf8", "not_yaml", "not_a_mapping", "missing", "wrong_type"])
-def test_blsm_train_bad_configs(tmp_path, capsys, kind):
-    cfg = tmp_path / "train.yaml"
-    problem = {"unknown_key": "regsiter: unknown key", "not_utf8": "not UTF-8 text", "not_yaml": "not valid YAML",
-               "not_a_mapping": "expected a mapping", "missing": "cannot read train config", "wrong_type": "run"}[kind]
-    if kind == "unknown_key":
-        cfg.write_text("regsiter: {}\n")
-    elif kind == "not_utf8":
-        cfg.write_bytes(b"seed: 1 # \xe9\n")
-    elif kind == "not_yaml":
-        cfg.write_text("seed: [1\n")
-    elif kind == "not_a_mapping":
-        cfg.write_text("- 1\n")
-    elif kind == "wrong_type":
-        cfg.write_text("run: 5\n")
-    _bad_input(capsys, "blsm train", ["train", str(cfg), "--out", str(tmp_path / "m.npz")], tmp_path, cfg, problem)
