@@ -128,14 +128,22 @@ class _Counter:
         return sorted(self.restarted)
 
 
-def _connect(address: str | None) -> bool:
-    """Join the cluster at ``address`` (None: start a local one); True when this call started Ray."""
+def connect(address: str | None) -> bool:
+    """Join the cluster at ``address`` (None: start a local one); True when this call connected
+    (the caller then calls ``ray.shutdown()``), False when this process already was.
+
+    Raises:
+        ValueError: Ray is not installed, or no cluster answers at ``address``.
+    """
     import logging
 
-    import ray
-
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("--engine ray needs Ray: pip install 'blsm-synth[ray]'") from None
     if ray.is_initialized():
         return False
+    _reachable(address)
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # Ray would report usage over the network
     try:
         ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
@@ -143,6 +151,20 @@ def _connect(address: str | None) -> bool:
     except ConnectionError as exc:
         raise ValueError(f"--address {address}: cannot reach a Ray cluster ({str(exc).splitlines()[0]})") from None
     return True
+
+
+def _reachable(address: str | None, timeout: float = 5.0) -> None:
+    """A ValueError unless something answers at ``HOST:PORT`` (Ray's own connection attempt keeps
+    retrying for minutes when nothing does). Other address forms are left to Ray."""
+    if not address or address == "auto" or "://" in address or ":" not in address:
+        return
+    host, _, port = address.rpartition(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=timeout).close()
+    except ValueError:
+        raise ValueError(f"--address {address}: not HOST:PORT") from None
+    except OSError as exc:
+        raise ValueError(f"--address {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
 
 
 def run_ray(
@@ -178,7 +200,7 @@ def run_ray(
     todo, done, skipped = plan
     done, skipped = dict(done), list(skipped)
     total = sum(len(writer.indices(s)) for s in todo)
-    started = _connect(address)
+    started = connect(address)
     try:
         nodes = [n for n in ray.nodes() if n.get("Alive")]
         cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))

@@ -535,6 +535,37 @@ def generate(
     model = blsm.load()
     check_inputs(cfg, model)
     variant = choose_variant(cfg)
+    if engine == "ray":  # the cluster is reached (or Ray found missing) before anything is made
+        from synth.engine_ray import connect
+
+        if connect(address):
+            import ray
+
+            try:
+                return _generate(cfg, out, writer, model, variant, workers, resume, progress, stop_after, on_image,
+                                 part, engine, address)
+            finally:
+                ray.shutdown()
+    return _generate(cfg, out, writer, model, variant, workers, resume, progress, stop_after, on_image, part,
+                     engine, address)
+
+
+def _generate(
+    cfg: GeneratorConfig,
+    out: Path,
+    writer: ShardWriter,
+    model: Any,
+    variant: str,
+    workers: int,
+    resume: bool,
+    progress: bool,
+    stop_after: int | None,
+    on_image: Callable[[int], None] | None,
+    part: tuple[int, int],
+    engine: str,
+    address: str | None,
+) -> dict[str, Any]:
+    """:func:`generate` once its inputs are checked: lock, subjects, shards."""
     created = _first_missing(out)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -723,3 +723,14 @@ def test_merge_while_a_part_runs_is_refused(tmp_path, capfd, fake_run):
     assert rc == 0, err
     assert json.loads((out / "manifest.json").read_text())["complete"]
     assert not list(out.glob("manifest-part-*")) and not list(out.glob(".lock*"))
+
+
+def test_ray_address_where_nothing_answers(tmp_path, capfd, fake_run):
+    """Checked before anything is made (Ray itself would keep retrying for minutes)."""
+    pytest.importorskip("ray", reason="Ray is not installed (pip install 'blsm-synth[ray]')")
+    cfg = _config(tmp_path)
+    before = snapshot(tmp_path)
+    rc, err = run(capfd, "generate", cfg, "--out", tmp_path / "out", "--engine", "ray", "--address", "127.0.0.1:1")
+    assert rc == 2 and len(err.splitlines()) == 1, err
+    assert err.startswith("synth: error: --address 127.0.0.1:1: no Ray cluster answers there"), err
+    assert snapshot(tmp_path) == before
