@@ -174,12 +174,12 @@ def run_ray(
     writer: ShardWriter,
     plan: tuple[list[int], dict[str, Any], list[dict[str, Any]]],
     variant: str,
-    address: str | None,
     worker: Worker,
     meter: Any,
     on_image: Callable[[int], None] | None,
 ) -> dict[str, Any]:
     """The shards of :func:`synth.generate.generate` as Ray tasks (module docstring); the manifest.
+    This process must be connected to the cluster (:func:`connect`).
 
     Args:
         cfg_json: ``cfg`` as JSON (what a worker's ``init`` takes).
@@ -188,86 +188,78 @@ def run_ray(
         meter: the progress meter (``tick()``, ``shard(msg)``, ``close()``, ``made``).
 
     Raises:
-        ValueError: the cluster cannot be reached; a failed write (:class:`WriteError`).
+        ValueError: a failed write (:class:`WriteError`).
         RuntimeError: a sample failed (without ``skip_bad``), or a task failed more than
             ``engine.max_retries`` times; the finished shards are kept for ``--resume``.
     """
-    try:
-        import ray
-        import ray.util.scheduling_strategies
-    except ImportError:
-        raise ValueError("--engine ray needs Ray: pip install 'blsm-synth[ray]'") from None
+    import ray
+    import ray.util.scheduling_strategies
+
     todo, done, skipped = plan
     done, skipped = dict(done), list(skipped)
     total = sum(len(writer.indices(s)) for s in todo)
-    started = connect(address)
+    nodes = [n for n in ray.nodes() if n.get("Alive")]
+    cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
+    worker.log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
+           f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
+    task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
+                                           retry_exceptions=False)
+    # The counter lives on the driver's node: it must outlive any node that leaves.
+    # (hard affinity: a soft one let Ray place it on another node when the driver's was busy)
+    here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(
+        ray.get_runtime_context().get_node_id(), soft=False)
+    counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
+    cfg_ref, where = ray.put(cfg_json), str(out.resolve())
+    refs = {
+        task.remote(worker, cfg_ref, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
+                    writer.indices(s).stop, cfg.skip_bad, counter): s
+        for s in todo
+    }
+    waiting, shards_done, last_manifest = list(refs), len(done), 0.0
     try:
-        nodes = [n for n in ray.nodes() if n.get("Alive")]
-        cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
-        worker.log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
-                 f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
-        task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
-                                               retry_exceptions=False)
-        # The counter lives on the driver's node: it must outlive any node that leaves.
-        # (hard affinity: a soft one let Ray place it on another node when the driver's was busy)
-        here = ray.util.scheduling_strategies.NodeAffinitySchedulingStrategy(
-            ray.get_runtime_context().get_node_id(), soft=False)
-        counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
-        cfg_ref, where = ray.put(cfg_json), str(out.resolve())
-        refs = {
-            task.remote(worker, cfg_ref, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
-                        writer.indices(s).stop, cfg.skip_bad, counter): s
-            for s in todo
-        }
-        waiting, shards_done, last_manifest = list(refs), len(done), 0.0
-        try:
-            while waiting:
-                ready, waiting = ray.wait(waiting, num_returns=len(waiting), timeout=0.5, fetch_local=True)
-                made = min(ray.get(counter.total.remote()), total)
-                while meter.made < made:
-                    meter.tick()
-                    if on_image is not None:
-                        on_image(meter.made)
-                for ref in sorted(ready, key=refs.__getitem__):
-                    s = refs[ref]
-                    try:
-                        res = ray.get(ref)
-                    except ray.exceptions.RayError as exc:
-                        raise RuntimeError(f"{out / shard_name(s)}: the Ray task failed after "
-                                           f"{cfg.engine.max_retries} retries ({type(exc).__name__})") from None
-                    if "error" in res:
-                        raise RuntimeError(res["error"])
-                    if "write_error" in res:
-                        raise WriteError(res["write_error"])
-                    # The writer's SHA-256 is trusted; the driver checks presence and size only, so
-                    # that it never reads the whole dataset back (--resume re-reads every shard).
-                    path = out / shard_name(s)
-                    if not path.is_file() or path.stat().st_size != res["bytes"]:
-                        raise RuntimeError(f"{path}: the shard a task wrote is not here or differs "
-                                           "(is --out on storage every node sees?)")
-                    done[shard_name(s)] = {k: res[k] for k in ("sha256", "samples", "first")}
-                    skipped += res["skipped"]
-                    if time.time() - last_manifest >= MANIFEST_EVERY_S:
-                        writer.write_manifest(done, skipped)
-                        last_manifest = time.time()
-                    shards_done += 1
-                    part = f", {writer.part_label}" if writer.part_label else ""
-                    meter.shard(f"{shard_name(s)}: {res['samples']} samples ({shards_done}/{len(writer.shards())} shards{part})")
-            retried = ray.get(counter.retried.remote())
-            if retried:
-                worker.log(f"{len(retried)} shards made again after their worker or node was lost: "
-                         + ", ".join(shard_name(x) for x in retried))
-        finally:
-            for ref in waiting:
-                ray.cancel(ref, force=True)
-            ray.kill(counter)
-            _remove_dead_temporaries(out, done)
-            writer.write_manifest(done, skipped)  # what is finished, also when the run stops
-        meter.close()
+        while waiting:
+            ready, waiting = ray.wait(waiting, num_returns=len(waiting), timeout=0.5, fetch_local=True)
+            made = min(ray.get(counter.total.remote()), total)
+            while meter.made < made:
+                meter.tick()
+                if on_image is not None:
+                    on_image(meter.made)
+            for ref in sorted(ready, key=refs.__getitem__):
+                s = refs[ref]
+                try:
+                    res = ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    raise RuntimeError(f"{out / shard_name(s)}: the Ray task failed after "
+                                       f"{cfg.engine.max_retries} retries ({type(exc).__name__})") from None
+                if "error" in res:
+                    raise RuntimeError(res["error"])
+                if "write_error" in res:
+                    raise WriteError(res["write_error"])
+                # The writer's SHA-256 is trusted; the driver checks presence and size only, so
+                # that it never reads the whole dataset back (--resume re-reads every shard).
+                path = out / shard_name(s)
+                if not path.is_file() or path.stat().st_size != res["bytes"]:
+                    raise RuntimeError(f"{path}: the shard a task wrote is not here or differs "
+                                       "(is --out on storage every node sees?)")
+                done[shard_name(s)] = {k: res[k] for k in ("sha256", "samples", "first")}
+                skipped += res["skipped"]
+                if time.time() - last_manifest >= MANIFEST_EVERY_S:
+                    writer.write_manifest(done, skipped)
+                    last_manifest = time.time()
+                shards_done += 1
+                meter.shard(writer.progress_line(s, res["samples"], shards_done))
+        retried = ray.get(counter.retried.remote())
+        if retried:
+            worker.log(f"{len(retried)} shards made again after their worker or node was lost: "
+                     + ", ".join(shard_name(x) for x in retried))
     finally:
-        if started:
-            ray.shutdown()
-    return writer.write_manifest(done, skipped)
+        for ref in waiting:
+            ray.cancel(ref, force=True)
+        ray.kill(counter)
+        _remove_dead_temporaries(out, done)
+        writer.write_manifest(done, skipped)  # what is finished, also when the run stops
+    meter.close()
+    return writer.manifest(dict(sorted(done.items())), skipped)  # as just written
 
 
 def _remove_dead_temporaries(out: Path, done: dict[str, Any]) -> None:

@@ -21,7 +21,7 @@ import os
 import shutil
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -39,7 +39,7 @@ from synth import lock as out_lock
 from synth.camera import outline_index, sample_camera
 from synth.config import GeneratorConfig
 from synth.render import PeopleRenderer, RenderMesh
-from synth.shards import ShardWriter, SkipSample, WriteError, sample_rng, shard_name
+from synth.shards import ShardWriter, SkipSample, WriteError, sample_rng
 from synth.subjects import Subject, anny_subject, load_subject, model_fingerprint, pose_subject, save_subject
 
 SUBJECTS = "subjects"
@@ -535,19 +535,26 @@ def generate(
     model = blsm.load()
     check_inputs(cfg, model)
     variant = choose_variant(cfg)
-    if engine == "ray":  # the cluster is reached (or Ray found missing) before anything is made
-        from synth.engine_ray import connect
+    # The cluster is reached (or Ray found missing) before anything is made.
+    with _ray_session(address) if engine == "ray" else contextlib.nullcontext():
+        return _generate(cfg, out, writer, model, variant, workers, resume, progress, stop_after, on_image, part,
+                         engine)
 
-        if connect(address):
+
+@contextlib.contextmanager
+def _ray_session(address: str | None) -> Iterator[None]:
+    """Connected to the Ray cluster at ``address`` (:func:`synth.engine_ray.connect`) for the block;
+    disconnected after it unless this process was connected before."""
+    from synth.engine_ray import connect
+
+    started = connect(address)
+    try:
+        yield
+    finally:
+        if started:
             import ray
 
-            try:
-                return _generate(cfg, out, writer, model, variant, workers, resume, progress, stop_after, on_image,
-                                 part, engine, address)
-            finally:
-                ray.shutdown()
-    return _generate(cfg, out, writer, model, variant, workers, resume, progress, stop_after, on_image, part,
-                     engine, address)
+            ray.shutdown()
 
 
 def _generate(
@@ -563,7 +570,6 @@ def _generate(
     on_image: Callable[[int], None] | None,
     part: tuple[int, int],
     engine: str,
-    address: str | None,
 ) -> dict[str, Any]:
     """:func:`generate` once its inputs are checked: lock, subjects, shards."""
     created = _first_missing(out)
@@ -598,7 +604,7 @@ def _generate(
 
             todo = todo[:stop_after] if stop_after is not None else todo
             meter = _Progress(sum(len(writer.indices(s)) for s in todo), progress)
-            man = run_ray(cfg, _cfg_json(cfg), out, writer, (todo, done, skipped), variant, address,
+            man = run_ray(cfg, _cfg_json(cfg), out, writer, (todo, done, skipped), variant,
                           Worker(_init_worker, _make_one, _log), meter, on_image)
             _log_done(man, meter)
             return man
@@ -698,8 +704,7 @@ def _run(
     def on_shard(s: int, count: int) -> None:
         nonlocal shards_done
         shards_done += 1
-        where = f", {writer.part_label}" if writer.part_label else ""
-        meter.shard(f"{shard_name(s)}: {count} samples ({shards_done}/{len(writer.shards())} shards{where})")
+        meter.shard(writer.progress_line(s, count, shards_done))
 
     # In this process (one worker), numpy's BLAS keeps one thread while samples are made: its idle
     # threads would otherwise spin on the cores Dr.Jit renders with (see _init_worker).

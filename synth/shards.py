@@ -210,6 +210,11 @@ class ShardWriter:
         """``"part I/N"``, or ``""`` for the whole dataset."""
         return f"part {self.part[0]}/{self.part[1]}" if self.part[1] > 1 else ""
 
+    def progress_line(self, shard: int, count: int, shards_done: int) -> str:
+        """The progress line of a finished shard: ``shard-NNNNNN.tar: C samples (D/T shards[, part I/N])``."""
+        where = f", {self.part_label}" if self.part_label else ""
+        return f"{shard_name(shard)}: {count} samples ({shards_done}/{len(self.shards())} shards{where})"
+
     def shards(self) -> list[int]:
         """The shards this writer makes: all, or those with ``s % N == I - 1`` for part ``I/N``."""
         i, n = self.part
