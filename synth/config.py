@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from blsm.config import config_from_dict as from_dict
 from blsm.io import read_yaml
@@ -64,12 +65,20 @@ class OutputConfig:
 @dataclass(frozen=True)
 class SubjectsConfig:
     """Who is rendered: ``anny`` (``count`` people sampled from Anny) or ``folder`` (user scans in
-    the folder format of :mod:`synth.scans`, path relative to the working directory)."""
+    the folder format of :mod:`synth.scans`, path relative to the working directory).
+
+    Anny's people are adults aged uniformly in ``age`` (years) or, with probability ``children``,
+    children aged uniformly in ``child_age`` (:class:`synth.subjects.Population`). The default --
+    adults 18-80, 10 % children of 5-17 -- holds no infant; ``age: [0, 90], children: 0`` is Anny's
+    own population (all ages, infants included), which the generator used before these keys."""
 
     source: str = "anny"
     count: int = 8
     folder: str = ""
     texture_size: int = 1024
+    age: tuple[float, float] = (18.0, 80.0)
+    children: float = 0.1
+    child_age: tuple[float, float] = (5.0, 17.0)
 
     def __post_init__(self) -> None:
         if self.source not in ("anny", "folder"):
@@ -80,6 +89,19 @@ class SubjectsConfig:
             raise ValueError(f"subjects.count must be positive, got {self.count}")
         if not 16 <= self.texture_size <= 8192:
             raise ValueError(f"subjects.texture_size must be in [16, 8192], got {self.texture_size}")
+        try:
+            self.population()
+        except ValueError as exc:
+            raise ValueError(f"subjects: {exc}") from None
+
+    def population(self) -> Any:
+        """The :class:`synth.subjects.Population` of these keys."""
+        from synth.subjects import Population
+
+        if len(self.age) != 2 or len(self.child_age) != 2:
+            raise ValueError(f"age and child_age must be [low, high], got {list(self.age)}, {list(self.child_age)}")
+        return Population(age=tuple(map(float, self.age)), children=float(self.children),
+                          child_age=tuple(map(float, self.child_age)))
 
 
 @dataclass(frozen=True)
@@ -88,7 +110,16 @@ class PosesConfig:
     one), ``library`` (frames of the clips in the motion library folder ``library``), or ``mix``
     (the library with probability ``library_rate``, else the prior). ``clips`` keeps only the named
     clips of the library (empty: all) and ``exclude_clips`` leaves the named ones out, so that a test
-    set can use motions held out of training (e.g. the clips held out of the packaged prior)."""
+    set can use motions held out of training (e.g. the clips held out of the packaged prior).
+
+    ``plausible`` (on by default) re-draws a prior sample whose foot points backwards or whose limb
+    passes through the torso (:mod:`blsm.mocap.plausible`), up to ``max_redraws`` times; off, every
+    prior draw is used as drawn (the generator before this option). Library frames are real poses
+    and are never re-drawn.
+
+    ``child_clips`` matches motions to age: when set, people younger than 18 (Anny's age) take
+    library frames from these clips only (walking, playing) while adults take any clip; empty, every
+    person draws from every clip."""
 
     source: str = "prior"
     prior: str = ""
@@ -96,16 +127,21 @@ class PosesConfig:
     library_rate: float = 0.5
     clips: tuple[str, ...] = ()
     exclude_clips: tuple[str, ...] = ()
+    plausible: bool = True
+    max_redraws: int = 100
+    child_clips: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if self.source not in ("prior", "library", "mix"):
             raise ValueError(f"poses.source must be prior, library or mix, got {self.source!r}")
         if self.source != "prior" and not self.library:
             raise ValueError(f"poses.library (a motion library folder) is needed with source: {self.source}")
-        if (self.clips or self.exclude_clips) and self.source == "prior":
-            raise ValueError("poses.clips and poses.exclude_clips need source: library or mix")
+        if (self.clips or self.exclude_clips or self.child_clips) and self.source == "prior":
+            raise ValueError("poses.clips, exclude_clips and child_clips need source: library or mix")
         if not 0.0 <= self.library_rate <= 1.0:
             raise ValueError(f"poses.library_rate must be in [0, 1], got {self.library_rate}")
+        if not 1 <= self.max_redraws <= 10000:
+            raise ValueError(f"poses.max_redraws must be in [1, 10000], got {self.max_redraws}")
 
 
 @dataclass(frozen=True)
@@ -154,12 +190,16 @@ class BackgroundConfig:
 @dataclass(frozen=True)
 class RenderConfig:
     """Mitsuba settings: samples per pixel, path depth, the variant (empty: llvm on CPU, cuda where
-    a GPU works, probed once), the recycling of a worker after ``recycle_after`` images."""
+    a GPU works, probed once), the recycling of a worker after ``recycle_after`` images, and
+    ``denoise`` (on by default): Open Image Denoise on the path-traced RGB with albedo and normal
+    from the same samples (:mod:`synth.denoise`). Off, the RGB is the path tracer's as before; the
+    labels are the same either way."""
 
     spp: int = 16
     max_depth: int = 4
     variant: str = ""
     recycle_after: int = 2000
+    denoise: bool = True
 
     def __post_init__(self) -> None:
         if self.spp < 1 or self.max_depth < 1 or self.recycle_after < 1:

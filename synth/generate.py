@@ -89,7 +89,8 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
     if cfg.subjects.source == "anny":
         # A subject depends on the model (its registration), the seed and the texture size: one
         # made with other ones must not be reused, or a resumed run would not be the same dataset.
-        stamp = {"model": model_fingerprint(model), "seed": cfg.seed, "texture_size": cfg.subjects.texture_size}
+        stamp = {"model": model_fingerprint(model), "seed": cfg.seed, "texture_size": cfg.subjects.texture_size,
+                 "population": asdict(cfg.subjects.population())}
         for i in range(cfg.subjects.count):
             path = folder / f"anny_{i:04d}.npz"
             if path.exists():  # written atomically, so complete: a damaged one is an error
@@ -102,7 +103,8 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
                 paths.append(path)
                 continue
             t0 = time.time()
-            s = anny_subject(model, path.stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size)
+            s = anny_subject(model, path.stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size,
+                             cfg.subjects.population())
             s.meta["made_with"] = stamp
             save_subject(s, path)
             _log(f"subject {path.stem}: height {s.meta['height_m']:.2f} m, fit {s.meta['registration']['fit_mean_mm']:.1f} mm ({time.time() - t0:.0f} s)")
@@ -151,14 +153,21 @@ class PoseSource:
         from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
 
         self.cfg = cfg.poses
-        self.prior = load_prior(self.cfg.prior or DEFAULT_PRIOR)
+        self.prior_path = self.cfg.prior or DEFAULT_PRIOR
+        self.prior = load_prior(self.prior_path)
+        self.checker = None
+        if self.cfg.plausible and self.cfg.source != "library":
+            import blsm
+            from blsm.mocap.plausible import PoseChecker
+
+            self.checker = PoseChecker(blsm.load())
         self.clips: list[Any] = []
         if self.cfg.source != "prior":
             from blsm.mocap.library import list_clips, load_clip
 
             files = list_clips(self.cfg.library)
             names = {Path(f).stem for f in files}
-            unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips) if n not in names]
+            unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips, *self.cfg.child_clips) if n not in names]
             if unknown:
                 raise ValueError(f"{self.cfg.library}: the motion library has no clip {unknown[0]!r}")
             if self.cfg.clips:
@@ -167,17 +176,35 @@ class PoseSource:
             if not files:
                 raise ValueError(f"{self.cfg.library}: the motion library holds no clips (after clips/exclude_clips)")
             self.clips = [load_clip(f) for f in files]
+            kept = {c.name for c in self.clips}
+            left_out = [n for n in self.cfg.child_clips if n not in kept]
+            if left_out:
+                raise ValueError(f"{self.cfg.library}: poses.child_clips names {left_out[0]!r}, which clips/exclude_clips leave out")
+        self.child_clips = [i for i, c in enumerate(self.clips) if c.name in self.cfg.child_clips]
 
-    def sample(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, dict]:
+    def sample(self, rng: np.random.Generator, child: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+        """A pose for one person; ``child`` (younger than 18) restricts library frames to
+        ``poses.child_clips`` where the config names them."""
         use_lib = self.cfg.source == "library" or (self.cfg.source == "mix" and rng.uniform() < self.cfg.library_rate)
         if use_lib:
-            ci = int(rng.integers(len(self.clips)))
+            if child and self.child_clips:
+                ci = self.child_clips[int(rng.integers(len(self.child_clips)))]
+            else:
+                ci = int(rng.integers(len(self.clips)))
             clip = self.clips[ci]
             fr = int(rng.integers(clip.num_frames))
             return clip.pose[fr].astype(np.float32), clip.global_orient[fr].astype(np.float32), {"source": "library", "clip": clip.name, "frame": fr}
-        g = torch.Generator().manual_seed(int(rng.integers(2**62)))
-        x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
-        return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1}
+        for redraws in range(self.cfg.max_redraws + 1):
+            g = torch.Generator().manual_seed(int(rng.integers(2**62)))
+            x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
+            if self.checker is None:
+                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1}
+            if self.checker.check(torch.from_numpy(x)[None]).plausible[0]:
+                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, "redraws": redraws}
+        raise ValueError(
+            f"{self.prior_path}: no plausible pose in {self.cfg.max_redraws + 1} draws "
+            "(a prior of implausible poses; set poses.plausible: false to use it as drawn)"
+        )
 
 
 def place_people(footprints: list[tuple[np.ndarray, float]], gap: float, rng: np.random.Generator) -> list[np.ndarray]:
@@ -207,10 +234,11 @@ def place_people(footprints: list[tuple[np.ndarray, float]], gap: float, rng: np
 class SampleMaker:
     """Everything a worker needs to make samples: model, subjects, poses, backgrounds, scenes."""
 
-    def __init__(self, cfg: GeneratorConfig, out: Path, variant: str) -> None:
+    def __init__(self, cfg: GeneratorConfig, out: Path, variant: str, threads: int = 0) -> None:
+        """``threads``: the worker's CPU threads, for the denoiser (0: all)."""
         import blsm
 
-        self.cfg, self.out, self.variant = cfg, Path(out), variant
+        self.cfg, self.out, self.variant, self.threads = cfg, Path(out), variant, threads
         self.model = blsm.load()
         index = json.loads((self.out / SUBJECTS / "index.json").read_text())
         self.subjects: list[Subject] = [load_subject(self.out / SUBJECTS / f"{k}.npz") for k in sorted(index["subjects"])]
@@ -288,6 +316,7 @@ class SampleMaker:
                 meshes, [t.shape[:2] for t in textures], cam.width, cam.height,
                 env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
                 max_depth=self.cfg.render.max_depth, backplate=backplate,
+                denoise=self.cfg.render.denoise, denoise_threads=self.threads,
             )  # fmt: skip
             self._renderers[key] = r
         return r
@@ -299,7 +328,8 @@ class SampleMaker:
         for _ in range(n):
             si = int(rng.integers(len(self.subjects)))
             s = self.subjects[si]
-            x, orient, motion = self.poses.sample(rng)
+            age = s.meta.get("phenotype", {}).get("age_years")
+            x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0)
             p = pose_subject(s, m, {"pose": x, "global_orient": orient, "transl": np.zeros(3, np.float32)}, cfg.pipeline)
             rig = self.rig(si)
             if rig["parents"] is not None:
@@ -456,7 +486,7 @@ def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int, pool_work
     torch.set_num_threads(1)
     dr.set_thread_count(threads)
     _ARGS, _MADE = (cfg_dict, out, variant, threads), 0
-    _MAKER = SampleMaker(from_dict(GeneratorConfig, cfg_dict), Path(out), variant)
+    _MAKER = SampleMaker(from_dict(GeneratorConfig, cfg_dict), Path(out), variant, threads)
 
 
 def _make_one(index: int) -> tuple[int, dict[str, bytes] | None, str, str]:

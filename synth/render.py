@@ -4,7 +4,8 @@ One :class:`PeopleRenderer` holds one loaded scene: a mesh per person slot (text
 environment map that lights the scene (and shows as the background, or is hidden when a backplate
 is composited behind the people), and two sensors that always share one OpenCV camera:
 
-- ``sensor`` renders the image with the path tracer, ``spp`` samples per pixel;
+- ``sensor`` renders the image with the path tracer, ``spp`` samples per pixel (with ``denoise``,
+  nested in the AOV integrator for albedo and normal, and denoised by :mod:`synth.denoise`);
 - ``label_sensor`` renders the AOV integrator (``depth``, ``position``, ``prim_index``) with one sample at
   every pixel centre (a non-jittered stratified sampler and a box filter), so every label pixel is
   the first hit of the ray through ``(u + 0.5, v + 0.5)``.
@@ -99,12 +100,17 @@ class PeopleRenderer:
         max_depth: int = 4,
         backplate: bool = False,
         instanced: bool = True,
+        denoise: bool = False,
+        denoise_threads: int = 1,
     ) -> None:
         """Load the scene.
 
         Args:
             instanced: each person mesh in a shape group seen through an instance (the default;
                 see below); False puts the meshes directly in the scene (benchmarks compare both).
+            denoise: render albedo and normal with the image's own samples and denoise the image
+                with Open Image Denoise (:mod:`synth.denoise`); labels are not affected.
+            denoise_threads: CPU threads of the denoiser.
         """
         self.variant = resolve_variant(variant)
         self.instanced = instanced
@@ -119,9 +125,18 @@ class PeopleRenderer:
             "near_clip": 0.01,
             "far_clip": 1000.0,
         }
+        self.denoiser = None
+        path = {"type": "path", "max_depth": max_depth, "hide_emitters": backplate}
+        if denoise:
+            from synth.denoise import Denoiser
+
+            self.denoiser = Denoiser(threads=denoise_threads)
+            # The path tracer nested in the AOV integrator: colour, albedo and normal of the same
+            # samples (film channels R, G, B, A, albedo RGB, normal XYZ).
+            path = {"type": "aov", "aovs": "alb:albedo,nn:sh_normal", "image": path}
         scene: dict[str, Any] = {
             "type": "scene",
-            "integrator": {"type": "path", "max_depth": max_depth, "hide_emitters": backplate},
+            "integrator": path,
             "sensor": {
                 **sensor_common,
                 "sampler": {"type": "independent", "sample_count": 16},
@@ -244,7 +259,13 @@ class PeopleRenderer:
         aov = np.asarray(
             mi.TensorXf(mi.render(self.scene, sensor=sensors[1], integrator=self.label_integrator, spp=1))
         )
-        rgb, alpha = image[..., :3], np.clip(image[..., 3], 0.0, 1.0)
+        if self.denoiser is not None:
+            from synth.denoise import denoise_inputs
+
+            color, alpha, albedo, normal = denoise_inputs(image)
+            rgb = self.denoiser(color, albedo, normal)
+        else:
+            rgb, alpha = image[..., :3], np.clip(image[..., 3], 0.0, 1.0)
         if backplate is not None:
             if not self.backplate:
                 raise ValueError("this renderer shows the environment; build it with backplate=True")

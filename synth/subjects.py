@@ -463,29 +463,88 @@ def _population() -> Any:
     return SimpleShapeDistribution(_anny())
 
 
-def sample_phenotype(rng: np.random.Generator) -> dict[str, float]:
-    """Anny phenotype values in [0, 1] for one person of a realistic population, and their age.
+@dataclass(frozen=True)
+class Population:
+    """Who Anny's people are: ages in years and the share of children.
 
-    Anny's own population model (``anny.shape_distribution.SimpleShapeDistribution``, calibrated
-    on WHO height-for-age data): age uniform over 0 to 90 years, sex uniform, then height, weight,
-    muscle and proportions from Beta distributions conditioned on age and sex. Uniform phenotype
-    values would make Anny's extremes (a 2.3 m man) as common as the middle. Seeded from ``rng``
-    only (torch's global generator is forked, not touched).
+    A person is a child with probability ``children`` and then aged uniformly in ``child_age``,
+    else an adult aged uniformly in ``age``. The defaults -- adults 18 to 80, one person in ten a
+    child of 5 to 17, no infant or toddler -- are a design choice for scenes of people standing,
+    walking and playing sport, not a census (docs/population.md has the histogram). Anny's own
+    population, ages uniform over 0 to 90 (infants included), is ``Population.ANNY``. The age is
+    Anny's morphological age, calibrated on WHO height-for-age data; height, weight, muscle and
+    proportions follow from it (:func:`sample_phenotype`).
+    """
+
+    age: tuple[float, float] = (18.0, 80.0)
+    children: float = 0.1
+    child_age: tuple[float, float] = (5.0, 17.0)
+
+    def __post_init__(self) -> None:
+        for name, (lo, hi) in (("age", self.age), ("child_age", self.child_age)):
+            if not 0.0 <= lo <= hi <= 90.0:
+                raise ValueError(f"{name} must be [low, high] years with 0 <= low <= high <= 90, got {[lo, hi]}")
+        if not 0.0 <= self.children <= 1.0:
+            raise ValueError(f"children must be a share in [0, 1], got {self.children}")
+
+    def distribution(self) -> Any:
+        """The age distribution in the form Anny's ``SimpleShapeDistribution`` samples from."""
+        adult = torch.distributions.Uniform(torch.tensor(self.age[0], dtype=torch.float64),
+                                            torch.tensor(self.age[1], dtype=torch.float64))
+        if self.children == 0.0:
+            return adult  # draws exactly as Anny's default Uniform(0, 90) when age is (0, 90)
+        child = torch.distributions.Uniform(torch.tensor(self.child_age[0], dtype=torch.float64),
+                                            torch.tensor(self.child_age[1], dtype=torch.float64))
+        return _AgeMixture(adult, child, self.children)
+
+
+Population.ANNY = Population(age=(0.0, 90.0), children=0.0)  # type: ignore[attr-defined]
+
+
+class _AgeMixture:
+    """Adult ages or, with probability ``share``, child ages (a ``sample(shape)`` like torch's)."""
+
+    def __init__(self, adult: Any, child: Any, share: float) -> None:
+        self.adult, self.child, self.share = adult, child, share
+
+    def sample(self, shape: tuple[int, ...]) -> torch.Tensor:
+        is_child = torch.rand(shape, dtype=torch.float64) < self.share
+        return torch.where(is_child, self.child.sample(shape), self.adult.sample(shape))
+
+
+@lru_cache(maxsize=8)
+def _population(population: Population = Population.ANNY) -> Any:  # type: ignore[attr-defined]
+    from anny.shape_distribution import SimpleShapeDistribution
+
+    return SimpleShapeDistribution(_anny(), morphological_age_distribution=population.distribution())
+
+
+def sample_phenotype(rng: np.random.Generator, population: Population | None = None) -> dict[str, float]:
+    """Anny phenotype values in [0, 1] for one person of a population, and their age.
+
+    Anny's population model (``anny.shape_distribution.SimpleShapeDistribution``, calibrated on
+    WHO height-for-age data) with the ages of ``population`` (default :class:`Population`: adults
+    18-80 and 10 % children of 5-17); sex uniform, then height, weight, muscle and proportions from
+    Beta distributions conditioned on age and sex. Uniform phenotype values would make Anny's
+    extremes (a 2.3 m man) as common as the middle. Seeded from ``rng`` only (torch's global
+    generator is forked, not touched).
 
     Returns:
         ``gender``, ``age``, ``muscle``, ``weight``, ``height``, ``proportions`` (Anny's values in
         [0, 1]) and ``age_years``.
     """
+    population = Population() if population is None else population
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(rng.integers(2**62)))
-        years, ph = _population().sample(1)
+        years, ph = _population(population).sample(1)
     out = {k: float(v.reshape(-1)[0]) for k, v in ph.items()}
     out["age_years"] = float(years.reshape(-1)[0])
     return out
 
 
 def anny_subject(
-    model: BLSM, subject_id: str, rng: np.random.Generator, texture_size: int = 1024
+    model: BLSM, subject_id: str, rng: np.random.Generator, texture_size: int = 1024,
+    population: Population | None = None,
 ) -> Subject:
     """A person sampled from Anny as a stand-in scan: mesh, procedural texture, registration, rig.
 
@@ -494,13 +553,14 @@ def anny_subject(
         subject_id: the subject's name.
         rng: the random generator (phenotype and outfit come from it only).
         texture_size: albedo texture size in texels.
+        population: ages of the people (default :class:`Population`).
     """
     from blsm.build_anny import ANNY_TO_WORLD, barycentric_interpolate
     from synth import textures
 
     tri, bary = _anny_embedding(model)
     am = _anny()
-    pheno = sample_phenotype(rng)
+    pheno = sample_phenotype(rng, population)
     with torch.no_grad():
         coeffs = am.get_phenotype_blendshape_coefficients(
             **{k: torch.tensor([pheno[k]], dtype=torch.float64) for k in am.phenotype_labels}

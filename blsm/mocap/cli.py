@@ -76,6 +76,14 @@ def add_parser(sub: Any) -> None:
     fit.add_argument("--model")
     fit.set_defaults(func=cmd_fit_prior)
 
+    pl = msub.add_parser("plausibility", help="how many prior draws have a backward foot or a limb through the torso")
+    pl.add_argument("--prior", help="prior .npz (default: the packaged one)")
+    pl.add_argument("--samples", type=_positive(int), default=10000)
+    pl.add_argument("--seed", type=int, default=0)
+    pl.add_argument("--library", help="also count the real frames of this library folder that the test flags")
+    pl.add_argument("--model")
+    pl.set_defaults(func=cmd_plausibility)
+
 
 def _load_model(path: str | None) -> Any:
     import blsm
@@ -331,6 +339,48 @@ def cmd_stats(args: argparse.Namespace) -> int:
     _, x = _library(args.library, model)
     angles = angles_from_unconstrained(torch.as_tensor(x), model.dof_limits.double()).numpy()
     _write_limit_stats(angles, model, Path(args.out))
+    return 0
+
+
+def cmd_plausibility(args: argparse.Namespace) -> int:
+    """Draw ``--samples`` poses from the prior, count the implausible ones (blsm.mocap.plausible),
+    re-draw those as ``synth generate`` does and check the result again."""
+    import torch
+
+    from blsm.mocap.plausible import PoseChecker
+    from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
+
+    model = _load_model(args.model)
+    path = args.prior or DEFAULT_PRIOR
+    prior = load_prior(path)
+    checker = PoseChecker(model)
+    g = torch.Generator().manual_seed(args.seed)
+    x = prior.sample(args.samples, g)
+    first = checker.check(x)
+    feet, limbs, ok = first.foot_backwards.sum(0), int(first.limb_in_torso.sum()), first.plausible
+    n_bad = int((~ok).sum())
+    print(f"prior {path}: {args.samples} draws (seed {args.seed}) on the mean body")
+    behind = first.toes_behind_heel.sum(0)
+    print(f"  toes behind the heel as posed (left / right; not a test): {behind[0]} / {behind[1]}")
+    print(f"  foot backwards, leg straightened (left / right): {feet[0]} / {feet[1]}; limb through the torso: {limbs}")
+    print(f"  rejected: {n_bad} of {args.samples} ({100.0 * n_bad / args.samples:.2f} %)")
+    draws = 0
+    while not ok.all():
+        bad = torch.from_numpy(~ok).nonzero().squeeze(1)
+        y = prior.sample(len(bad), g)
+        draws += len(bad)
+        good = torch.from_numpy(checker.check(y).plausible)
+        x[bad[good]] = y[good]
+        ok[bad[good].numpy()] = True
+    final = checker.check(x)
+    print(f"  after re-drawing ({draws} more draws): foot backwards {int(final.foot_backwards.sum())}, "
+          f"limb through the torso {int(final.limb_in_torso.sum())}")
+    if args.library:
+        _, lib = _library(args.library, model)
+        real = checker.check(torch.as_tensor(lib, dtype=torch.float32))
+        print(f"library {args.library}: {len(lib)} real frames; toes behind the heel as posed "
+              f"{int(real.toes_behind_heel.any(1).sum())}; flagged although real: foot backwards "
+              f"{int(real.foot_backwards.any(1).sum())}, limb through the torso {int(real.limb_in_torso.sum())}")
     return 0
 
 
