@@ -11,6 +11,14 @@ A sample draws, from the sample's own random generator:
 - the view: yaw uniform in ``yaw_deg`` about the person, elevation uniform in ``elevation_deg``, a
   small roll (normal, ``roll_sd_deg``); with probability ``rare_rate`` a rare view instead:
   from above (elevation 55..85), from below (-50..-25) or upside down (roll 180), equally likely;
+- with ``height_m`` (the default, 1.4 to 2.0 m) a normal or upside-down view instead places the camera
+  at a height drawn uniformly there, above the ground ``y = 0`` the people stand on, and aims it at
+  them: the elevation follows from the height and the distance. HDRIs are shot about 1.7 m above
+  their ground, so the horizon and the people's size against the backdrop agree with it.
+  ``height_m: []`` keeps the drawn elevation (the sampler before this option);
+- with ``f_number`` ([low, high], off by default) an aperture, log-uniform in that range, for a
+  thin lens focused on the people (:mod:`synth.lens`): ``info`` records ``f_number`` and
+  ``focus_m``, and the generator blurs the backdrop by the lens' circle of confusion;
 - the distance, so that the person's projected height fills ``fill`` of the image height;
 - with probability ``truncation_rate``, a shifted principal point so that the person is partly out
   of frame (15 % to 50 % of the person's box beyond one image side, drawn uniformly); otherwise the
@@ -46,6 +54,8 @@ class CameraConfig:
     rare_rate: float = 0.05
     fill: tuple[float, float] = (0.55, 0.9)
     truncation_rate: float = 0.1
+    height_m: tuple[float, ...] = (1.4, 2.0)
+    f_number: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
@@ -64,6 +74,10 @@ class CameraConfig:
             raise ValueError(f"camera fill must be in (0, 1.5], got {list(self.fill)}")
         if not -90 < self.elevation_deg[0] <= self.elevation_deg[1] < 90:
             raise ValueError(f"camera elevation_deg must be inside (-90, 90), got {list(self.elevation_deg)}")
+        if len(self.height_m) not in (0, 2) or (self.height_m and not 0.05 <= self.height_m[0] <= self.height_m[1]):
+            raise ValueError(f"camera height_m must be [] or [low, high] metres with 0.05 <= low <= high, got {list(self.height_m)}")
+        if len(self.f_number) not in (0, 2) or (self.f_number and not 0.5 <= self.f_number[0] <= self.f_number[1]):
+            raise ValueError(f"camera f_number must be [] or [low, high] with 0.5 <= low <= high, got {list(self.f_number)}")
         for name in ("rare_rate", "truncation_rate"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"camera {name} must be in [0, 1], got {getattr(self, name)}")
@@ -133,16 +147,23 @@ def sample_camera(
             elev = math.radians(rng.uniform(-50.0, -25.0))
         else:
             roll += math.pi
-    direction = np.array([math.sin(yaw) * math.cos(elev), math.sin(elev), math.cos(yaw) * math.cos(elev)])
     fill = float(rng.uniform(*cfg.fill))
     truncated = bool(rng.uniform() < cfg.truncation_rate)
     out_frac, side = 0.0, 0
+    height = None
+    if cfg.height_m and view in ("normal", "upside_down"):
+        height = float(rng.uniform(*cfg.height_m))
+
+    def eye(dist: float) -> np.ndarray:
+        """The camera centre at ``dist`` from the people's centre (at ``height`` when given)."""
+        e = elev if height is None else math.asin(float(np.clip((height - centre[1]) / dist, -0.99, 0.99)))
+        return centre + dist * np.array([math.sin(yaw) * math.cos(e), math.sin(e), math.cos(yaw) * math.cos(e)])
 
     # Distance: the projected box height scales like 1 / distance; two corrections suffice.
     radius = float(np.linalg.norm(pts - centre, axis=1).max())
     dist = max(2.0 * radius, f_px * 2.0 * radius / (fill * cfg.height))
     for _ in range(3):
-        cam = _aimed(centre + dist * direction, centre, roll, f_px, cfg)
+        cam = _aimed(eye(dist), centre, roll, f_px, cfg)
         if (cam.world_to_camera(pts)[:, 2] <= 0.05).any():
             dist *= 1.5
             continue
@@ -150,7 +171,7 @@ def sample_camera(
         size = max(b[3] - b[1], (b[2] - b[0]) * cfg.height / cfg.width)
         dist *= size / (fill * cfg.height)
         dist = max(dist, 1.05 * radius + 0.1)
-    cam = _aimed(centre + dist * direction, centre, roll, f_px, cfg)
+    cam = _aimed(eye(dist), centre, roll, f_px, cfg)
     b = _box(cam, pts)
     if not truncated:
         # Whole person in frame: back off until the box fits inside the image with a margin.
@@ -158,7 +179,7 @@ def sample_camera(
             if b[0] >= 1 and b[1] >= 1 and b[2] <= cfg.width - 1 and b[3] <= cfg.height - 1:
                 break
             dist *= 1.1
-            cam = _aimed(centre + dist * direction, centre, roll, f_px, cfg)
+            cam = _aimed(eye(dist), centre, roll, f_px, cfg)
             b = _box(cam, pts)
         else:  # pragma: no cover - needs a field of view smaller than the person
             raise ValueError("cannot fit the person in frame; widen focal_mm or lower fill")
@@ -187,4 +208,11 @@ def sample_camera(
         "truncation": out_frac if truncated else 0.0,
         "truncation_side": ("left", "right", "top", "bottom")[side] if truncated else "",
     }
+    if cfg.f_number:
+        info["f_number"] = float(math.exp(rng.uniform(math.log(cfg.f_number[0]), math.log(cfg.f_number[1]))))
+        info["focus_m"] = float(cam.world_to_camera(centre[None])[0, 2])
+    if height is not None:
+        centre_y = float(eye(dist)[1])
+        info["elevation_deg"] = math.degrees(math.asin(float(np.clip((centre_y - centre[1]) / dist, -1.0, 1.0))))
+        info["height_m"] = centre_y
     return cam, info

@@ -224,6 +224,24 @@ class EngineConfig:
 
 
 @dataclass(frozen=True)
+class GroundConfig:
+    """The ground the people stand on (:mod:`synth.ground`): with ``shadows`` (on by default) the
+    backdrop -- environment or backplate -- is darkened where the people shadow the plane ``y = 0``
+    (a shadow catcher, ``samples`` shadow rays per ground pixel up to ``max_distance`` metres from
+    the camera). Off, the environment is seen as before."""
+
+    shadows: bool = True
+    samples: int = 32
+    max_distance: float = 60.0
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.samples <= 1024:
+            raise ValueError(f"ground.samples must be in [1, 1024], got {self.samples}")
+        if not self.max_distance > 0:
+            raise ValueError(f"ground.max_distance must be positive, got {self.max_distance}")
+
+
+@dataclass(frozen=True)
 class GeneratorConfig:
     """The top level of a ``configs/synth/*.yaml`` file.
 
@@ -243,6 +261,7 @@ class GeneratorConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
+    ground: GroundConfig = field(default_factory=GroundConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     engine: EngineConfig = field(default_factory=EngineConfig)
 

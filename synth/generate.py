@@ -90,7 +90,7 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
         # A subject depends on the model (its registration), the seed and the texture size: one
         # made with other ones must not be reused, or a resumed run would not be the same dataset.
         stamp = {"model": model_fingerprint(model), "seed": cfg.seed, "texture_size": cfg.subjects.texture_size,
-                 "population": asdict(cfg.subjects.population())}
+                 "population": json.loads(json.dumps(asdict(cfg.subjects.population())))}  # as stored (lists)
         for i in range(cfg.subjects.count):
             path = folder / f"anny_{i:04d}.npz"
             if path.exists():  # written atomically, so complete: a damaged one is an error
@@ -354,12 +354,18 @@ class SampleMaker:
         camera, cam_info = sample_camera(np.concatenate([p["outline"] for p in people]), cfg.camera, rng)
         back = self.background(rng)
         rigs = [p["rig"] for p in people]
-        r = self.renderer([q["mesh"] for q in rigs], [q["texture"] for q in rigs], back.backplate is not None)
+        # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
+        # a backplate) and the backdrop is composited after the render: darkened by the people's
+        # shadows, blurred by the lens.
+        composite = cfg.ground.shadows or "f_number" in cam_info
+        r = self.renderer([q["mesh"] for q in rigs], [q["texture"] for q in rigs], back.backplate is not None or composite)
         seed = int(rng.integers(2**31))
         frame = r.render(
             [p["vertices"] for p in people], [q["texture"] for q in rigs], camera,
-            back.env, back.rotation, back.scale, back.backplate, cfg.render.spp, seed,
+            back.env, back.rotation, back.scale, None if composite else back.backplate, cfg.render.spp, seed,
         )  # fmt: skip
+        if composite:
+            self._composite_backdrop(r, frame, camera, cam_info, back, people, rng)
         labels = lab.person_labels(
             frame, camera,
             [{"vertices": p["vertices"], "outline": p["outline"], "faces": q["faces"], "face_bones": q["face_bones"],
@@ -369,6 +375,41 @@ class SampleMaker:
         if labels["unassigned"]:
             raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")
         return self.encode(index, camera, cam_info, back, people, frame, labels)
+
+    def _composite_backdrop(self, r: PeopleRenderer, frame: Any, camera: Any, cam_info: dict, back: bg.Background,
+                            people: list[dict[str, Any]], rng: np.random.Generator) -> None:
+        """Composite the backdrop behind the people: darkened where they shadow the ground
+        (:mod:`synth.ground`, with ``ground.shadows``), blurred by the thin lens (:mod:`synth.lens`,
+        with ``camera.f_number``). Records what it did in ``back.info``."""
+        from synth import ground, lens
+
+        g = self.cfg.ground
+        backdrop = back.backplate
+        if backdrop is None:
+            backdrop = ground.env_backdrop(camera, back.env, back.rotation, back.scale)
+        if g.shadows:
+            pts = np.concatenate([p["outline"] for p in people]).astype(np.float64)
+            centre = 0.5 * (pts.min(0) + pts.max(0))
+            sphere = (centre, float(np.linalg.norm(pts - centre, axis=1).max()) + 0.01)
+            ratio, on_ground = ground.shadow_ratio(
+                ground.mitsuba_ray_test(r.mi, r.scene), camera, back.env, back.rotation, sphere,
+                np.random.default_rng(int(rng.integers(2**63))),
+                samples=g.samples, max_distance=g.max_distance, exclude=frame.alpha >= 1.0,
+            )  # fmt: skip
+            backdrop = backdrop * ratio[..., None]
+            back.info["ground"] = {"shadow_catcher": True, "ground_pixels": int(on_ground.sum()),
+                                   "shadowed_pixels": int((ratio < 0.95).sum())}  # fmt: skip
+        if "f_number" in cam_info:
+            f_px = float(camera.K[0, 0])
+            aperture = cam_info["focal_mm"] / cam_info["f_number"] / 1000.0
+            on, pts = ground.ground_points(camera, np.inf)
+            depth = np.full(on.shape, np.inf)
+            depth[on] = (pts[on] @ camera.R.T + camera.t)[:, 2]
+            coc = lens.circle_of_confusion(depth, cam_info["focus_m"], f_px, aperture)
+            backdrop = lens.defocus(backdrop, coc)
+            back.info["lens"] = {"coc_px_max": round(float(coc.max()), 3), "coc_px_infinity": round(
+                float(lens.circle_of_confusion(np.array([np.inf]), cam_info["focus_m"], f_px, aperture)[0]), 3)}
+        frame.rgb = (frame.rgb + (1.0 - frame.alpha[..., None]) * backdrop).astype(np.float32)
 
     def encode(self, index, camera, cam_info, back, people, frame, labels) -> dict[str, bytes]:
         from blsm.joint_limits import unconstrained_from_angles

@@ -1,0 +1,211 @@
+"""A ground that receives the people's shadows: the shadow catcher, and the backdrop it darkens.
+
+The people stand on the plane ``y = 0`` (:mod:`synth.generate` puts every person's lowest vertex on
+it). Behind them the image shows a backdrop -- the environment map seen in the camera's directions
+(HDRI or procedural sky) or a backplate photograph -- that has no people in it, so nothing there
+darkens under them: they float. The shadow catcher puts the missing shadows onto the backdrop:
+
+1. The pixel-centre ray of every pixel that looks down (and is not covered by a person) meets the
+   ground plane at a point ``x``, up to ``max_distance`` metres away.
+2. The unoccluded irradiance of a horizontal diffuse ground under a distant environment ``L`` is
+   ``E = int_{y > 0} L(w) cos(theta) dw``, the same at every point. With the people in the scene a
+   point receives ``E_x = int V(x, w) L(w) cos(theta) dw``, ``V`` the visibility. The shadow ratio
+   ``S(x) = E_x / E`` is estimated with ``samples`` directions drawn with density proportional to
+   ``L(w) cos(theta)`` over the upper hemisphere (importance sampling of the environment map's
+   texels, so a sun's sharp shadow and the sky's soft contact shadow are both found):
+   ``S(x) = (1/n) sum_i V(x, w_i)``. Rays that miss the people's bounding sphere are unoccluded and
+   are not traced; the others are tested against the people's meshes with Mitsuba's
+   ``Scene.ray_test`` (the renderer's own scene, so the people are exactly the rendered ones).
+3. ``S`` is smoothed by a normalised 5 x 5 box filter over ground pixels (Monte Carlo noise),
+   and the backdrop is multiplied by it on ground pixels: a photographed diffuse ground under a
+   shadow is darker by exactly that ratio. The people are composited over the result with the
+   render's anti-aliased coverage.
+
+Assumptions (docs/realism.md): the ground is flat, diffuse and at ``y = 0``; an HDRI's own ground
+is taken to be that plane (HDRIs are shot about 1.7 m above the ground, so the camera height is
+sampled around it, :class:`synth.camera.CameraConfig` ``height_m``); a backplate's horizon is not
+known, so its ground is where the plane projects with the sampled camera. The shadow darkens the
+backdrop only; the people are lit by the full environment as before (no bounce light from the
+ground). Labels are unaffected: the ground is not a person, so masks, parts, depth and keypoints
+are those of the people alone.
+
+The environment lookups follow Mitsuba's ``envmap`` exactly (lat-long, ``u = atan2(x, -z) / 2 pi``,
+``v = acos(y) / pi``, bilinear with rows from the zenith to the nadir, ``to_world`` a rotation about +Y), so the
+backdrop matches what the path tracer showed before (``tests/synth/test_ground.py`` compares).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from blsm.camera import Camera
+
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def _rotation(angle: float) -> np.ndarray:
+    """The environment's ``to_world`` rotation about +Y (synth.render)."""
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def env_lookup(env: np.ndarray, directions: np.ndarray, rotation: float = 0.0, scale: float = 1.0) -> np.ndarray:
+    """Radiance (N, 3) of a lat-long map ``env`` (H, W, 3) in world ``directions`` (N, 3), as
+    Mitsuba's ``envmap`` with ``to_world`` a rotation by ``rotation`` about +Y and ``scale``."""
+    d = np.asarray(directions, np.float64)
+    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
+    v = d @ _rotation(rotation)  # to_world^-1 applied to row vectors: R^T d
+    h, w = env.shape[:2]
+    u = np.arctan2(v[:, 0], -v[:, 2]) / (2.0 * math.pi)
+    u -= np.floor(u)
+    t = np.arccos(np.clip(v[:, 1], -1.0, 1.0)) / math.pi
+    # Bilinear: texel columns centred at (i + 0.5) / W, wrapping around; rows at i / (H - 1), the
+    # first at the zenith and the last at the nadir (what Mitsuba's envmap does; checked to 1e-5).
+    x, y = u * w - 0.5, t * (h - 1)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    xa, xb = x0 % w, (x0 + 1) % w
+    ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
+    e = env.astype(np.float64)
+    out = (e[ya, xa] * (1 - fx) + e[ya, xb] * fx) * (1 - fy) + (e[yb, xa] * (1 - fx) + e[yb, xb] * fx) * fy
+    return (out * scale).astype(np.float32)
+
+
+def pixel_rays(camera: Camera, offsets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre (3,) and unit world directions (H, W, S, 3) of rays through each pixel at the
+    sub-pixel ``offsets`` (S, 2) in [0, 1) (default: the centre, 0.5)."""
+    offsets = np.array([[0.5, 0.5]]) if offsets is None else np.asarray(offsets, np.float64)
+    u = np.arange(camera.width)[None, :, None] + offsets[None, None, :, 0]
+    v = np.arange(camera.height)[:, None, None] + offsets[None, None, :, 1]
+    u, v = np.broadcast_arrays(u, v)
+    pix = np.stack([u, v, np.ones_like(u)], axis=-1)  # (H, W, S, 3)
+    cam_dirs = pix @ np.linalg.inv(camera.K).T
+    world = cam_dirs @ camera.R  # R^T d for row vectors
+    world /= np.linalg.norm(world, axis=-1, keepdims=True)
+    centre = -camera.R.T @ camera.t
+    return centre, world
+
+
+def env_backdrop(camera: Camera, env: np.ndarray, rotation: float, scale: float, supersample: int = 2) -> np.ndarray:
+    """(H, W, 3) the environment as a camera sees it, ``supersample``^2 stratified rays a pixel."""
+    s = supersample
+    g = (np.arange(s) + 0.5) / s
+    offsets = np.stack(np.meshgrid(g, g, indexing="xy"), axis=-1).reshape(-1, 2)
+    _, dirs = pixel_rays(camera, offsets)
+    h, w = camera.height, camera.width
+    rad = env_lookup(env, dirs.reshape(-1, 3), rotation, scale).reshape(h, w, s * s, 3)
+    return rad.mean(axis=2)
+
+
+@dataclass
+class EnvSampler:
+    """Directions drawn with density proportional to ``L(w) cos(theta)`` over the upper hemisphere
+    of a lat-long map (luminance ``L``); see the module docstring."""
+
+    env: np.ndarray
+    rotation: float
+
+    def __post_init__(self) -> None:
+        h, w = self.env.shape[:2]
+        theta = np.arange(h) / (h - 1) * math.pi  # row i looks at theta_i (env_lookup)
+        cos_t = np.cos(theta)
+        lum = np.maximum(self.env.astype(np.float64) @ _LUMA, 0.0)
+        weight = lum * (np.clip(cos_t, 0.0, None) * np.sin(theta))[:, None]  # texel solid angle ~ sin(theta)
+        total = weight.sum()
+        if not total > 0:
+            raise ValueError("the environment has no light above the horizon")
+        self._cdf = np.cumsum(weight.ravel()) / total
+        self._shape = (h, w)
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """(n, 3) unit world directions, all with y > 0."""
+        h, w = self._shape
+        idx = np.minimum(np.searchsorted(self._cdf, rng.uniform(size=n), side="right"), h * w - 1)
+        row, col = np.divmod(idx, w)
+        # Uniform in the texel's footprint around its direction; y > 0 is kept below.
+        t = np.clip((row + rng.uniform(size=n) - 0.5) / (h - 1), 0.0, 1.0) * math.pi
+        u = (col + rng.uniform(size=n)) / w
+        phi = u * 2.0 * math.pi  # atan2(x, -z) = phi
+        local = np.stack([np.sin(t) * np.sin(phi), np.cos(t), -np.sin(t) * np.cos(phi)], axis=-1)
+        local[:, 1] = np.maximum(local[:, 1], 1e-4)
+        world = local @ _rotation(self.rotation).T
+        return world / np.linalg.norm(world, axis=-1, keepdims=True)
+
+
+def ground_points(camera: Camera, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where each pixel-centre ray meets ``y = 0``: a (H, W) mask of rays that do within
+    ``max_distance`` of the camera (horizontally), and the (H, W, 3) points (0 elsewhere)."""
+    centre, dirs = pixel_rays(camera)
+    dirs = dirs[:, :, 0]
+    if centre[1] <= 0.0:
+        return np.zeros(dirs.shape[:2], bool), np.zeros(dirs.shape, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -centre[1] / dirs[..., 1]
+    pts = centre + t[..., None] * dirs
+    horiz = np.linalg.norm((pts - centre)[..., [0, 2]], axis=-1)
+    mask = (dirs[..., 1] < -1e-6) & (horiz <= max_distance)
+    pts[~mask] = 0.0
+    return mask, pts
+
+
+def shadow_ratio(
+    ray_test: Any,
+    camera: Camera,
+    env: np.ndarray,
+    rotation: float,
+    people_sphere: tuple[np.ndarray, float],
+    rng: np.random.Generator,
+    samples: int = 32,
+    max_distance: float = 60.0,
+    exclude: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The shadow ratio ``S`` (H, W) in [0, 1] on the ground (1 elsewhere), and the ground mask.
+
+    Args:
+        ray_test: ``f(origins (N, 3), directions (N, 3)) -> (N,) bool``, True where a ray hits a
+            person (:func:`mitsuba_ray_test`).
+        people_sphere: centre and radius of a sphere around every person (rays missing it are free).
+        exclude: (H, W) bool pixels to skip (those a person covers).
+    """
+    mask, pts = ground_points(camera, max_distance)
+    if exclude is not None:
+        mask &= ~exclude
+    ratio = np.ones(mask.shape, np.float64)
+    if not mask.any():
+        return ratio.astype(np.float32), mask
+    x = pts[mask]  # (P, 3)
+    p = len(x)
+    dirs = EnvSampler(env, rotation).sample(p * samples, rng).reshape(p, samples, 3)
+    origins = np.repeat(x[:, None], samples, axis=1) + np.array([0.0, 1e-4, 0.0])
+    c, r = people_sphere
+    oc = origins - c
+    b = (oc * dirs).sum(-1)
+    disc = b * b - ((oc * oc).sum(-1) - r * r)
+    cand = (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0.0)) > 0)
+    blocked = np.zeros((p, samples), bool)
+    if cand.any():
+        blocked[cand] = ray_test(origins[cand], dirs[cand])
+    ratio[mask] = 1.0 - blocked.mean(axis=1)
+    # Smooth the Monte Carlo noise over ground pixels only (normalised box filter).
+    m = mask.astype(np.float64)
+    num = uniform_filter(ratio * m, size=5, mode="nearest")
+    den = uniform_filter(m, size=5, mode="nearest")
+    smooth = np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
+    ratio[mask] = smooth[mask]
+    return ratio.astype(np.float32), mask
+
+
+def mitsuba_ray_test(mi: Any, scene: Any) -> Any:
+    """A ``ray_test`` for :func:`shadow_ratio` on a loaded Mitsuba scene (its shapes occlude)."""
+
+    def test(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        o = mi.Point3f(*(np.ascontiguousarray(origins[:, i], np.float32) for i in range(3)))
+        d = mi.Vector3f(*(np.ascontiguousarray(directions[:, i], np.float32) for i in range(3)))
+        return np.asarray(scene.ray_test(mi.Ray3f(o, d)), dtype=bool)
+
+    return test
