@@ -22,6 +22,7 @@ worker's share of the cores) and one filter, committed again only when the image
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -99,6 +100,13 @@ class Denoiser:
             pass
 
 
+@functools.lru_cache(maxsize=2)
+def shared_denoiser(threads: int = 1, quality: str = "high") -> Denoiser:
+    """One :class:`Denoiser` per process and setting (an OIDN device loads its weights once, about
+    a second; the renderers of one worker share it)."""
+    return Denoiser(threads=threads, quality=quality)
+
+
 def denoise_inputs(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Split a render of the ``aov`` integrator nesting the path tracer (channels R, G, B, A,
     albedo RGB, normal XYZ) into colour, alpha, albedo and normal, with OIDN's albedo for
@@ -118,4 +126,4 @@ def psnr(image: np.ndarray, reference: np.ndarray, peak: float = 1.0) -> float:
     return float("inf") if mse == 0.0 else 10.0 * np.log10(peak**2 / mse)
 
 
-__all__: list[Any] = ["Denoiser", "DenoiseError", "denoise_inputs", "psnr"]
+__all__: list[Any] = ["Denoiser", "DenoiseError", "denoise_inputs", "psnr", "shared_denoiser"]

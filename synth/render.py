@@ -128,9 +128,9 @@ class PeopleRenderer:
         self.denoiser = None
         path = {"type": "path", "max_depth": max_depth, "hide_emitters": backplate}
         if denoise:
-            from synth.denoise import Denoiser
+            from synth.denoise import shared_denoiser
 
-            self.denoiser = Denoiser(threads=denoise_threads)
+            self.denoiser = shared_denoiser(denoise_threads)
             # The path tracer nested in the AOV integrator: colour, albedo and normal of the same
             # samples (film channels R, G, B, A, albedo RGB, normal XYZ).
             path = {"type": "aov", "aovs": "alb:albedo,nn:sh_normal", "image": path}

@@ -22,7 +22,7 @@ def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("sede: 3\n", "sede: unknown key (known: background, camera, engine, num, output, people, pipeline, poses,"),
+        ("sede: 3\n", "sede: unknown key (known: background, camera, engine, ground, num, output, people, pipeline, poses,"),
         ("camera:\n  focal: [1, 2]\n", "camera.focal: unknown key"),
         ("seed: three\n", "seed: expected an integer, got 'three'"),
         ("seed: true\n", "seed: expected an integer"),

@@ -1,0 +1,196 @@
+"""Plausible people and poses (issue 18): the default population's ages and the prior's re-draws.
+
+    python benchmarks/bench_realism.py --out docs/realism.md [--poses 10000] [--people 10000]
+
+Writes two sections of ``--out`` (between ``<!-- bench:... -->`` markers) and
+``docs/realism_ages.png``:
+
+- **poses**: ``--poses`` prior draws through the generator's own ``PoseSource`` (seed 0), with and
+  without ``poses.plausible``: feet pointing backwards relative to the pelvis (the leg
+  straightened, :mod:`blsm.mocap.plausible`), toes behind the heel as posed (information), limbs
+  through the torso, and the re-draw (rejection) rate;
+- **ages**: the ages of ``--people`` people of the default population against Anny's own (0-90);
+- **noise** (``--noise CONFIG``): the same ``--scenes`` scenes of a generator config rendered as the
+  generator did before this work (16 spp, no denoiser, no shadow catcher: ``before``), undenoised at
+  128 spp, at each of ``--spp`` with the denoiser, and with every new default (``after``), against a
+  1024-spp undenoised reference; PSNR of the written 8-bit sRGB images and time per image (the
+  whole sample, labels included), alternating rounds, medians. Subjects are made once into
+  ``--work``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+def _replace_section(path: Path, name: str, body: str) -> None:
+    start, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
+    text = path.read_text() if path.exists() else ""
+    block = f"{start}\n{body.rstrip()}\n{end}"
+    if start in text and end in text:
+        text = re.sub(re.escape(start) + r".*?" + re.escape(end), lambda _: block, text, flags=re.S)
+    else:
+        text = text.rstrip() + ("\n\n" if text else "") + block + "\n"
+    path.write_text(text)
+
+
+def poses_section(n: int) -> str:
+    import blsm
+    from blsm.mocap.plausible import PoseChecker
+    from synth.config import GeneratorConfig, PosesConfig
+    from synth.generate import PoseSource
+
+    checker = PoseChecker(blsm.load())
+    rows = []
+    for plausible in (False, True):
+        src = PoseSource(GeneratorConfig(poses=PosesConfig(plausible=plausible)))
+        rng = np.random.default_rng(0)
+        t0 = time.perf_counter()
+        xs, redraws = [], 0
+        for _ in range(n):
+            x, _, motion = src.sample(rng)
+            xs.append(x)
+            redraws += motion.get("redraws", 0)
+        dt = time.perf_counter() - t0
+        r = checker.check(torch.from_numpy(np.stack(xs)))
+        rows.append((plausible, r, redraws, dt))
+    lines = [
+        f"{n} prior poses drawn by `synth.generate.PoseSource` (seed 0, the packaged CMU prior), checked on the",
+        "mean body by `blsm.mocap.plausible`:",
+        "",
+        "| `poses.plausible` | feet backwards, leg straightened (L / R) | toes behind heel as posed (L / R) | limb through torso | re-draws | rejection rate | ms per pose |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for plausible, r, redraws, dt in rows:
+        fb, th = r.foot_backwards.sum(0), r.toes_behind_heel.sum(0)
+        rate = f"{100.0 * redraws / (n + redraws):.2f} %" if plausible else "-"
+        lines.append(f"| {str(plausible).lower()} | {fb[0]} / {fb[1]} | {th[0]} / {th[1]} | {int(r.limb_in_torso.sum())} | "
+                     f"{redraws if plausible else '-'} | {rate} | {1000.0 * dt / n:.2f} |")
+    lines += ["", "The rejection rate is re-draws over all draws made. Command: `python benchmarks/bench_realism.py`."]
+    return "\n".join(lines)
+
+
+def ages_section(n: int, png: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from synth.subjects import Population, sample_phenotype
+
+    bins = [0, 2, 5, 10, 18, 30, 40, 50, 60, 70, 80, 90]
+    pops = {"default (adults 18-80, 10 % children 5-17)": Population(), "Anny's own (0-90, `age: [0, 90], children: 0`)": Population.ANNY}
+    ages = {k: np.array([sample_phenotype(np.random.default_rng(i), p)["age_years"] for i in range(n)]) for k, p in pops.items()}
+    fig, ax = plt.subplots(figsize=(7, 3.2))
+    for k, a in ages.items():
+        ax.hist(a, bins=np.arange(0, 91, 2.5), alpha=0.6, label=k)
+    ax.set_xlabel("age (years, Anny's morphological age)")
+    ax.set_ylabel(f"people of {n}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    head = "| ages | " + " | ".join(f"{lo}-{hi}" for lo, hi in zip(bins[:-1], bins[1:])) + " |"
+    lines = [f"Ages of {n} people per population (`sample_phenotype`, seeds 0..{n - 1}); ![ages]({png.name})", "", head,
+             "| --- |" + " ---: |" * (len(bins) - 1)]
+    for k, a in ages.items():
+        counts = np.histogram(a, bins=bins)[0]
+        lines.append(f"| {k} | " + " | ".join(str(c) for c in counts) + " |")
+    return "\n".join(lines)
+
+
+def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref_spp: int, rounds: int) -> str:
+    import dataclasses
+
+    from blsm.mitsuba_util import resolve_variant
+    from synth import format as fmt
+    from synth.config import load_config
+    from synth.denoise import psnr
+    import blsm
+    from synth.generate import SampleMaker, prepare_subjects
+    from synth.shards import sample_rng
+
+    base = load_config(config)
+    work.mkdir(parents=True, exist_ok=True)
+    prepare_subjects(base, work, blsm.load())
+    variant = resolve_variant(base.render.variant or None)
+
+    def variant_cfg(spp: int, denoise: bool, shadows: bool):
+        return dataclasses.replace(base, render=dataclasses.replace(base.render, spp=spp, denoise=denoise),
+                                   ground=dataclasses.replace(base.ground, shadows=shadows))
+
+    conds = {"before: 16 spp, no denoiser, no shadows": variant_cfg(16, False, False),
+             "128 spp, no denoiser, no shadows": variant_cfg(128, False, False)}
+    for spp in spp_list:
+        conds[f"{spp} spp, denoiser, no shadows"] = variant_cfg(spp, True, False)
+    conds[f"after: every default ({base.render.spp} spp, denoiser, shadows)"] = base
+    ref_cfg = variant_cfg(ref_spp, False, False)
+    ref_after = dataclasses.replace(ref_cfg, ground=base.ground)  # the reference of the shadowed scenes
+
+    def render_all(cfg) -> tuple[list[np.ndarray], float]:
+        maker = SampleMaker(cfg, work, variant, threads=0)
+        maker.make(0, sample_rng(cfg.seed, 0))  # warm-up: kernels compile once
+        t0 = time.perf_counter()
+        out = [fmt.decode_png(maker.make(i, sample_rng(cfg.seed, i))["rgb.png"], "rgb") for i in range(1, scenes + 1)]
+        return out, (time.perf_counter() - t0) / scenes
+
+    refs = {False: render_all(ref_cfg)[0], True: render_all(ref_after)[0]}
+    times: dict[str, list[float]] = {k: [] for k in conds}
+    quality: dict[str, float] = {}
+    for _ in range(rounds):
+        for name, cfg in conds.items():
+            imgs, t = render_all(cfg)
+            times[name].append(t)
+            ref = refs[cfg.ground.shadows]
+            quality[name] = float(np.mean([psnr(a / 255.0, b / 255.0) for a, b in zip(imgs, ref)]))
+    before = float(np.median(times[next(iter(conds))]))
+    lines = [
+        f"`{config}`: {scenes} scenes ({base.camera.width} x {base.camera.height} px), reference {ref_spp} spp undenoised "
+        f"(with the shadow catcher for `after`), {rounds} rounds, this machine's cores.",
+        "",
+        "| render | PSNR (dB) | s per image | time vs before |",
+        "| --- | ---: | ---: | ---: |",
+    ]
+    for name in conds:
+        t = float(np.median(times[name]))
+        lines.append(f"| {name} | {quality[name]:.2f} | {t:.3f} | {t / before:.2f} |")
+    lines += ["", f"Command: `python benchmarks/bench_realism.py --noise {config} --scenes {scenes} "
+              f"--spp {' '.join(map(str, spp_list))} --ref-spp {ref_spp} --rounds {rounds}`."]
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", default="docs/realism.md")
+    ap.add_argument("--poses", type=int, default=10000)
+    ap.add_argument("--people", type=int, default=10000)
+    ap.add_argument("--noise", metavar="CONFIG", help="also measure the denoiser (a generator config)")
+    ap.add_argument("--work", default="out/bench_realism", help="subjects for --noise")
+    ap.add_argument("--scenes", type=int, default=12)
+    ap.add_argument("--spp", type=int, nargs="+", default=[4, 8, 16])
+    ap.add_argument("--ref-spp", type=int, default=1024)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--skip", nargs="*", default=[], choices=["poses", "ages"], help="sections not to run")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    if args.noise:
+        _replace_section(out, "realism-noise", noise_section(args.noise, Path(args.work), args.scenes, args.spp,
+                                                             args.ref_spp, args.rounds))
+        print(f"noise: {out}")
+    if "poses" not in args.skip:
+        _replace_section(out, "realism-poses", poses_section(args.poses))
+        print(f"poses: {out}")
+    if "ages" not in args.skip:
+        _replace_section(out, "realism-ages", ages_section(args.people, out.parent / "realism_ages.png"))
+        print(f"ages: {out}, {out.parent / 'realism_ages.png'}")
+
+
+if __name__ == "__main__":
+    main()
