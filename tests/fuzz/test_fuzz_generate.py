@@ -344,7 +344,7 @@ class FakeMaker:
 
     hook = None
 
-    def __init__(self, cfg, out, variant) -> None:
+    def __init__(self, cfg, out, variant, threads=0) -> None:
         import blsm
 
         self.cfg, self.model = cfg, blsm.load()
