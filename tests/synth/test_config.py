@@ -33,6 +33,14 @@ def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
         ("camera: 3\n", "camera: expected a mapping"),
         ("[1, 2]\n", "(top level): expected a mapping"),
         ("seed: [\n", "not valid YAML"),
+        ("subjects: {age: [10, 95]}\n", "subjects: subjects: age must be [low, high] years with 0 <= low <= high <= 90"),
+        ("subjects: {age: [40, 20]}\n", "age must be [low, high]"),
+        ("subjects: {children: 1.5}\n", "children must be a share in [0, 1]"),
+        ("poses: {max_redraws: 0}\n", "poses.max_redraws must be in [1, 10000]"),
+        ("poses: {child_clips: [a]}\n", "child_clips need source: library or mix"),
+        ("camera: {height_m: [2, 1]}\n", "camera height_m must be [] or [low, high]"),
+        ("camera: {f_number: [0.1, 2]}\n", "camera f_number must be [] or [low, high]"),
+        ("ground: {samples: 0}\n", "ground.samples must be in [1, 1024]"),
     ],
 )
 def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, message):
