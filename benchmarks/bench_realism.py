@@ -11,9 +11,10 @@ Writes two sections of ``--out`` (between ``<!-- bench:... -->`` markers) and
   through the torso, and the re-draw (rejection) rate;
 - **ages**: the ages of ``--people`` people of the default population against Anny's own (0-90);
 - **noise** (``--noise CONFIG``): the same ``--scenes`` scenes of a generator config rendered as the
-  generator did before this work (16 spp, no denoiser, no shadow catcher: ``before``), undenoised at
-  128 spp, at each of ``--spp`` with the denoiser, and with every new default (``after``), against a
-  1024-spp undenoised reference; PSNR of the written 8-bit sRGB images and time per image (the
+  generator did before this work (16 spp, no denoiser, no shadow catcher, no hair: ``before``),
+  undenoised at 128 spp, at each of ``--spp`` with the denoiser, and with every new default
+  (``after``), against a 1024-spp undenoised reference of the same scenes (with shadows and hair for
+  ``after``); PSNR of the written 8-bit sRGB images and time per image (the
   whole sample, labels included), alternating rounds, medians. Subjects are made once into
   ``--work``.
 """
@@ -121,17 +122,19 @@ def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref
     prepare_subjects(base, work, blsm.load())
     variant = resolve_variant(base.render.variant or None)
 
-    def variant_cfg(spp: int, denoise: bool, shadows: bool):
+    def variant_cfg(spp: int, denoise: bool, shadows: bool, hair: bool = False):
         return dataclasses.replace(base, render=dataclasses.replace(base.render, spp=spp, denoise=denoise),
-                                   ground=dataclasses.replace(base.ground, shadows=shadows))
+                                   ground=dataclasses.replace(base.ground, shadows=shadows),
+                                   hair=dataclasses.replace(base.hair, enabled=hair))
 
-    conds = {"before: 16 spp, no denoiser, no shadows": variant_cfg(16, False, False),
-             "128 spp, no denoiser, no shadows": variant_cfg(128, False, False)}
+    conds = {"before: 16 spp, no denoiser, no shadows, no hair": variant_cfg(16, False, False),
+             "128 spp, no denoiser, no shadows, no hair": variant_cfg(128, False, False)}
     for spp in spp_list:
-        conds[f"{spp} spp, denoiser, no shadows"] = variant_cfg(spp, True, False)
-    conds[f"after: every default ({base.render.spp} spp, denoiser, shadows)"] = base
-    ref_cfg = variant_cfg(ref_spp, False, False)
-    ref_after = dataclasses.replace(ref_cfg, ground=base.ground)  # the reference of the shadowed scenes
+        conds[f"{spp} spp, denoiser, no shadows, no hair"] = variant_cfg(spp, True, False)
+    conds[f"after: every default ({base.render.spp} spp, denoiser, shadows, hair)"] = base
+    # The references: the same scenes at ref_spp undenoised, without and with the shadows and hair.
+    scene_of = {name: (cfg.ground.shadows, cfg.hair.enabled) for name, cfg in conds.items()}
+    ref_cfgs = {k: variant_cfg(ref_spp, False, *k) for k in set(scene_of.values())}
 
     def render_all(cfg) -> tuple[list[np.ndarray], float]:
         maker = SampleMaker(cfg, work, variant, threads=0)
@@ -140,19 +143,19 @@ def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref
         out = [fmt.decode_png(maker.make(i, sample_rng(cfg.seed, i))["rgb.png"], "rgb") for i in range(1, scenes + 1)]
         return out, (time.perf_counter() - t0) / scenes
 
-    refs = {False: render_all(ref_cfg)[0], True: render_all(ref_after)[0]}
+    refs = {k: render_all(c)[0] for k, c in ref_cfgs.items()}
     times: dict[str, list[float]] = {k: [] for k in conds}
     quality: dict[str, float] = {}
     for _ in range(rounds):
         for name, cfg in conds.items():
             imgs, t = render_all(cfg)
             times[name].append(t)
-            ref = refs[cfg.ground.shadows]
+            ref = refs[scene_of[name]]
             quality[name] = float(np.mean([psnr(a / 255.0, b / 255.0) for a, b in zip(imgs, ref)]))
     before = float(np.median(times[next(iter(conds))]))
     lines = [
         f"`{config}`: {scenes} scenes ({base.camera.width} x {base.camera.height} px), reference {ref_spp} spp undenoised "
-        f"(with the shadow catcher for `after`), {rounds} rounds, this machine's cores.",
+        f"of the same scenes (with the shadow catcher and hair for `after`), {rounds} rounds, this machine's cores.",
         "",
         "| render | PSNR (dB) | s per image | time vs before |",
         "| --- | ---: | ---: | ---: |",

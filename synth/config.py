@@ -242,6 +242,32 @@ class GroundConfig:
 
 
 @dataclass(frozen=True)
+class HairStyles:
+    """Relative weights of the hair styles of :mod:`synth.hair` (0 leaves a style out)."""
+
+    short: float = 0.35
+    long: float = 0.3
+    tied: float = 0.15
+    curly: float = 0.2
+
+    def __post_init__(self) -> None:
+        w = [self.short, self.long, self.tied, self.curly]
+        if min(w) < 0 or sum(w) <= 0:
+            raise ValueError(f"hair.styles must be non-negative weights, not all 0, got {w}")
+
+
+@dataclass(frozen=True)
+class HairConfig:
+    """Hair geometry on the people (:mod:`synth.hair`; on by default): each subject gets one hair,
+    its style drawn by ``styles``' weights, in the colour of its painted hair. The ``raw`` pipeline
+    shows scans as captured and grows no hair. Off, people have only the painted hair cap, as
+    before."""
+
+    enabled: bool = True
+    styles: HairStyles = field(default_factory=HairStyles)
+
+
+@dataclass(frozen=True)
 class GeneratorConfig:
     """The top level of a ``configs/synth/*.yaml`` file.
 
@@ -262,6 +288,7 @@ class GeneratorConfig:
     background: BackgroundConfig = field(default_factory=BackgroundConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
+    hair: HairConfig = field(default_factory=HairConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     engine: EngineConfig = field(default_factory=EngineConfig)
 

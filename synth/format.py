@@ -20,7 +20,9 @@ Every sample (key ``f"{index:09d}"``) has these members, all made by one render 
 ``corr.npy.gz``     (H, W, 3) float32 (gzip of ``numpy.save``): ``[face, b1, b2]``: the index of the
                     hit face of the person's rendered mesh (-1 on background) and the barycentric
                     coordinates of the hit point on it (``b0 = 1 - b1 - b2`` for the face's first
-                    vertex).
+                    vertex). A person with hair has the body's ``F`` faces followed by the hair's
+                    (:mod:`synth.hair`): a face index ``>= F`` is hair, which has no point of the
+                    body surface under it.
 ==================  =============================================================================
 
 Every label pixel is the first hit of the ray through the pixel centre ``(u + 0.5, v + 0.5)``: the
@@ -37,11 +39,12 @@ The JSON (``format`` "blsm-synth-sample", ``version`` 1) holds:
 - ``keypoint_names`` (the model's keypoints), ``bone_names``, ``part_names``;
 - ``people``: one entry per person, in mask order:
   ``subject`` (id in ``subjects/``), ``pipeline`` (rigged, raw or blsm), ``motion`` (source, clip,
-  frame), ``blsm`` (``pose`` 47 unconstrained values x of Eq. 6, ``angles`` 47 radians, ``bone``,
+  frame), ``hair`` (only with hair: the :class:`synth.hair.HairSpec` it was grown from), ``blsm`` (``pose`` 47 unconstrained values x of Eq. 6, ``angles`` 47 radians, ``bone``,
   ``shape``, ``global_orient`` axis-angle, ``transl`` metres), ``bone_lengths`` (metres, per bone),
   ``keypoints_3d`` (K, 3) world metres, ``keypoints_3d_cam`` (K, 3) camera metres,
   ``keypoints_2d`` (K, 2) pixels, ``visible`` (K) whether the ray through the keypoint's pixel first
-  hits this person on a face of the keypoint's own body region, ``in_frame`` (K), ``box``
+  hits this person on a face of the keypoint's own body region (hair counts as the head for the
+  joints inside it and hides the surface keypoints under it: eyes, ears, nose), ``in_frame`` (K), ``box``
   ``[x0, y0, x1, y1]`` pixel edges of the person's visible mask, ``box_full`` the box of the
   person's whole projected mesh (may leave the image), ``pixels`` (visible mask area).
 

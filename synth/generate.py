@@ -253,6 +253,8 @@ class SampleMaker:
             self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
         elif b.kind == "images":
             self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
+        self.hair = cfg.hair.enabled and cfg.pipeline != "raw"
+        self.head_bone = list(m.bone_names).index("head")
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, dict[str, Any]] = {}
         self._renderers: dict[tuple, PeopleRenderer] = {}
@@ -284,6 +286,13 @@ class SampleMaker:
             "face_bones": lab.face_bones(faces, weights),
             "parents": parents,
         }
+        if self.hair:
+            from dataclasses import asdict
+
+            from synth.hair import subject_hair, subject_hair_spec
+
+            spec = subject_hair_spec(s, asdict(self.cfg.hair.styles), self.cfg.seed)
+            rig["hair"] = (spec, subject_hair(s, m, spec, pipe))
         self._rigs[si] = rig
         return rig
 
@@ -316,7 +325,7 @@ class SampleMaker:
                 meshes, [t.shape[:2] for t in textures], cam.width, cam.height,
                 env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
                 max_depth=self.cfg.render.max_depth, backplate=backplate,
-                denoise=self.cfg.render.denoise, denoise_threads=self.threads,
+                denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
             )  # fmt: skip
             self._renderers[key] = r
         return r
@@ -335,22 +344,29 @@ class SampleMaker:
             if rig["parents"] is not None:
                 par = rig["parents"]
                 p["vertices"] = 0.5 * (p["vertices"][par[:, 0]] + p["vertices"][par[:, 1]])
+            if "hair" in rig:
+                from synth.hair import pose_hair
+
+                p["hair"] = pose_hair(rig["hair"][1], p["transforms"])
             p.update(subject=s.id, si=si, motion=motion, rig=rig)
             people.append(p)
-        # The hull vertices of each posed mesh: footprints, framing and full boxes only need the
-        # extremes, which these hold (synth.camera.outline_index).
-        hulls = [outline_index(p["vertices"]) for p in people]
+        # The hull vertices of each posed mesh (hair included): footprints, framing and full boxes
+        # only need the extremes, which these hold (synth.camera.outline_index).
+        shells = [p["vertices"] if "hair" not in p else np.concatenate([p["vertices"], p["hair"]]) for p in people]
+        hulls = [outline_index(v) for v in shells]
         foot = []
-        for p, idx in zip(people, hulls):
-            xz = p["vertices"][idx][:, [0, 2]]
+        for v, idx in zip(shells, hulls):
+            xz = v[idx][:, [0, 2]]
             c = 0.5 * (xz.min(0) + xz.max(0))
             foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
-        for p, idx, d in zip(people, hulls, place_people(foot, cfg.people.gap, rng)):
-            d = d - np.array([0.0, p["vertices"][idx, 1].min(), 0.0])  # feet on the floor y = 0
-            for k in ("vertices", "keypoints", "joints"):
-                p[k] = (p[k] + d).astype(np.float32)
+        for p, v, idx, d in zip(people, shells, hulls, place_people(foot, cfg.people.gap, rng)):
+            floor = p["vertices"][:, 1].min() if "hair" in p else v[idx, 1].min()
+            d = d - np.array([0.0, floor, 0.0])  # feet on the floor y = 0
+            for k in ("vertices", "keypoints", "joints", "hair"):
+                if k in p:
+                    p[k] = (p[k] + d).astype(np.float32)
             p["transl"] = (p["transl"] + d).astype(np.float32)
-            p["outline"] = p["vertices"][idx]
+            p["outline"] = (v[idx] + d).astype(np.float32)
         camera, cam_info = sample_camera(np.concatenate([p["outline"] for p in people]), cfg.camera, rng)
         back = self.background(rng)
         rigs = [p["rig"] for p in people]
@@ -363,18 +379,26 @@ class SampleMaker:
         frame = r.render(
             [p["vertices"] for p in people], [q["texture"] for q in rigs], camera,
             back.env, back.rotation, back.scale, None if composite else back.backplate, cfg.render.spp, seed,
+            [(p["hair"], q["hair"][1].colours) for p, q in zip(people, rigs)] if self.hair else None,
         )  # fmt: skip
         if composite:
             self._composite_backdrop(r, frame, camera, cam_info, back, people, rng)
         labels = lab.person_labels(
             frame, camera,
             [{"vertices": p["vertices"], "outline": p["outline"], "faces": q["faces"], "face_bones": q["face_bones"],
-              "keypoints": p["keypoints"]} for p, q in zip(people, rigs)],
+              "keypoints": p["keypoints"], **self._hair_labels(p)} for p, q in zip(people, rigs)],
             self.bone_to_part, self.regions, self.is_joint,
         )  # fmt: skip
         if labels["unassigned"]:
             raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")
         return self.encode(index, camera, cam_info, back, people, frame, labels)
+
+    def _hair_labels(self, p: dict[str, Any]) -> dict[str, Any]:
+        if "hair" not in p:
+            return {}
+        from synth.hair import hair_faces
+
+        return {"hair_vertices": p["hair"], "hair_faces": hair_faces(), "hair_bone": self.head_bone}
 
     def _composite_backdrop(self, r: PeopleRenderer, frame: Any, camera: Any, cam_info: dict, back: bg.Background,
                             people: list[dict[str, Any]], rng: np.random.Generator) -> None:
@@ -426,6 +450,7 @@ class SampleMaker:
                     "subject": p["subject"],
                     "pipeline": self.cfg.pipeline,
                     "motion": p["motion"],
+                    **({"hair": p["rig"]["hair"][0].to_json()} if "hair" in p else {}),
                     "blsm": {
                         "pose": _l(x), "angles": _l(p["angles"]), "bone": _l(p["bone"]), "shape": _l(p["shape"]),
                         "global_orient": _l(p["global_orient"]), "transl": _l(p["transl"]),

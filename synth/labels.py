@@ -10,7 +10,9 @@ person p on a face of the keypoint's own body region (its bone, the bone's paren
 joint keypoints; the bones of its vertices for surface keypoints), at a depth consistent with the
 keypoint: for a surface keypoint within ``SURFACE_TOL`` of it, for a joint (inside the body) in
 front of it by less than ``JOINT_DEPTH``. A keypoint hidden by the body itself (an arm behind the
-torso, the far ear) or by another person is therefore not visible.
+torso, the far ear) or by another person is therefore not visible. Hair (:mod:`synth.hair`) is part
+of its person and of the head: it hides the surface keypoints under it (an ear under long hair) and
+counts as the head's surface for the joints inside the head.
 """
 
 from __future__ import annotations
@@ -59,14 +61,14 @@ def keypoint_regions(
 
 
 def assign_hits(frame: Frame, meshes: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """Which person each hit pixel shows, and the barycentric coordinates of the hit.
+    """Which mesh each hit pixel shows, and the barycentric coordinates of the hit.
 
-    The label pass gives the hit's world position and face index; the person is the one whose face
+    The label pass gives the hit's world position and face index; the mesh is the one whose face
     of that index contains the hit point (the smallest distance to the face's plane, which is ~0
     for the right one).
 
     Returns:
-        person (H, W) int64 (-1 where nothing is hit) and bary (H, W, 3) float32.
+        the index into ``meshes`` (H, W) int64 (-1 where nothing is hit) and bary (H, W, 3) float32.
     """
     h, w = frame.hit.shape
     person = np.full((h, w), -1, np.int64)
@@ -120,7 +122,12 @@ def person_labels(
         frame: the render.
         camera: its camera.
         people: per person ``vertices`` (V, 3), ``faces`` (F, 3), ``face_bones`` (F,), ``keypoints``
-            (K, 3) world.
+            (K, 3) world, and optionally a hair (:mod:`synth.hair`): ``hair_vertices`` (H, 3),
+            ``hair_faces`` (Fh, 3) and ``hair_bone`` (the head's bone index). A hair pixel belongs to
+            its person's mask, to the head bone and part; its depth is the hair's; its
+            correspondence face is ``F + f`` for hair face ``f`` (the person's rendered mesh is the
+            body followed by the hair); it hides the surface keypoints under it (eyes, ears) but
+            not the joints inside the head.
         bone_to_part: (J,) part index per bone.
         regions: per keypoint, the bones that may show it.
         keypoint_is_joint: (K,) bool.
@@ -132,18 +139,30 @@ def person_labels(
         contains: should be 0).
     """
     h, w = frame.hit.shape
-    person, bary = assign_hits(frame, [(p["vertices"], p["faces"]) for p in people])
-    hit = person >= 0
+    # The meshes a hit can be on: every body, then every hair (entry -> person, face offset).
+    entries = [(p["vertices"], p["faces"]) for p in people]
+    owner, offset = list(range(len(people))), [0] * len(people)
+    for i, p in enumerate(people):
+        if p.get("hair_vertices") is not None:
+            entries.append((p["hair_vertices"], p["hair_faces"]))
+            owner.append(i)
+            offset.append(len(p["faces"]))
+    entry, bary = assign_hits(frame, entries)
+    hit = entry >= 0
+    person = np.where(hit, np.asarray(owner)[np.maximum(entry, 0)], -1)
+    on_hair = entry >= len(people)
+    face = np.where(hit, frame.face + np.asarray(offset)[np.maximum(entry, 0)], -1)
     mask = np.where(hit, person + 1, 0).astype(np.uint8)
     bones = np.zeros((h, w), np.uint8)
     for i, p in enumerate(people):
-        sel = person == i
+        sel = (person == i) & ~on_hair
         bones[sel] = p["face_bones"][frame.face[sel]] + 1
+        bones[(person == i) & on_hair] = p.get("hair_bone", 0) + 1
     parts = np.where(hit, bone_to_part[np.maximum(bones.astype(np.int64) - 1, 0)] + 1, 0).astype(np.uint8)
     depth = np.zeros((h, w), np.float32)
     depth[hit] = (frame.position[hit].astype(np.float64) @ camera.R[2] + camera.t[2]).astype(np.float32)
     corr = np.zeros((h, w, 3), np.float32)
-    corr[..., 0] = np.where(hit, frame.face, -1)
+    corr[..., 0] = face
     corr[..., 1:] = np.where(hit[..., None], bary[..., 1:], 0.0)
 
     out_people = []
@@ -159,6 +178,8 @@ def person_labels(
         for k in np.flatnonzero(in_frame):
             u, v = px[k]
             if person[v, u] != i or (int(bones[v, u]) - 1) not in regions[k]:
+                continue
+            if on_hair[v, u] and not keypoint_is_joint[k]:  # a surface point under hair is hidden
                 continue
             dz = kc[k, 2] - depth[v, u]  # > 0: the surface is in front of the keypoint
             if keypoint_is_joint[k]:

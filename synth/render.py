@@ -102,6 +102,7 @@ class PeopleRenderer:
         instanced: bool = True,
         denoise: bool = False,
         denoise_threads: int = 1,
+        hair: bool = False,
     ) -> None:
         """Load the scene.
 
@@ -111,6 +112,9 @@ class PeopleRenderer:
             denoise: render albedo and normal with the image's own samples and denoise the image
                 with Open Image Denoise (:mod:`synth.denoise`); labels are not affected.
             denoise_threads: CPU threads of the denoiser.
+            hair: every person slot also holds a hair (:mod:`synth.hair`; the same topology for all):
+                ribbons with per-vertex colour, seen from both sides, slightly glossy (a two-sided
+                principled BSDF, roughness 0.45, specular 0.35).
         """
         self.variant = resolve_variant(variant)
         self.instanced = instanced
@@ -118,6 +122,7 @@ class PeopleRenderer:
         self.width, self.height = width, height
         self.meshes = meshes
         self.backplate = backplate
+        self.hair = hair
         sensor_common = {
             "type": "perspective",
             "fov": 40.0,
@@ -188,6 +193,9 @@ class PeopleRenderer:
             p["faces"] = mi.UInt32(m.split_faces.reshape(-1))
             p["vertex_texcoords"] = mi.Float(m.texcoords.reshape(-1))
             p.update()
+            shapes = {f"person_{i}": mesh}
+            if hair:
+                shapes[f"hair_{i}"] = self._hair_mesh(i)
             # Each person is a shape group seen through one identity instance. Embree then gives
             # the person its own BVH, which the group rebuilds after each vertex update at Embree's
             # default quality instead of the scene's RTC_BUILD_QUALITY_HIGH. `make bench` measured
@@ -196,10 +204,10 @@ class PeopleRenderer:
             # few pixels where a light path took another turn (Monte Carlo noise;
             # tests/synth/test_people_renderer.py).
             if instanced:
-                scene[f"group_{i}"] = {"type": "shapegroup", f"person_{i}": mesh}
+                scene[f"group_{i}"] = {"type": "shapegroup", **shapes}
                 scene[f"instance_{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{i}"}}
             else:
-                scene[f"person_{i}"] = mesh
+                scene.update(shapes)
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         self.label_integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth,pos:position,pi:prim_index"})
@@ -210,7 +218,32 @@ class PeopleRenderer:
         # reports the bare render with and without it.
         self.spare_emitter = mi.load_dict({"type": "constant"})
         self._warm = False
+        self._hair_inc = None
         self._textures: dict[int, np.ndarray] = {}  # the texture array each slot shows now
+
+    def _hair_mesh(self, i: int) -> Any:
+        from synth.hair import hair_faces, num_vertices
+
+        mi = self.mi
+        props = mi.Properties()
+        colour = {"type": "mesh_attribute", "name": "vertex_color"}
+        props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {
+            "type": "principled", "base_color": colour, "roughness": 0.45, "specular": 0.35}})  # fmt: skip
+        nv, faces = num_vertices(), hair_faces()
+        mesh = mi.Mesh(f"hair_{i}", nv, len(faces), props=props, has_vertex_normals=True)
+        mesh.add_attribute("vertex_color", 3, mi.Float(np.full(3 * nv, 0.1, np.float32)))
+        p = mi.traverse(mesh)
+        p["vertex_positions"] = mi.Float(np.zeros(3 * nv, dtype=np.float32))
+        p["faces"] = mi.UInt32(faces.reshape(-1).astype(np.uint32))
+        p.update()
+        return mesh
+
+    def _hair_incidence(self) -> Any:
+        if self._hair_inc is None:
+            from synth.hair import hair_faces, num_vertices
+
+            self._hair_inc = face_incidence(hair_faces(), num_vertices())
+        return self._hair_inc
 
     def render(
         self,
@@ -223,6 +256,7 @@ class PeopleRenderer:
         backplate: np.ndarray | None = None,
         spp: int = 16,
         seed: int = 0,
+        hair: list[tuple[np.ndarray, np.ndarray]] | None = None,
     ) -> Frame:
         """Render one frame.
 
@@ -237,12 +271,18 @@ class PeopleRenderer:
                 built with ``backplate=True``), or None to see the environment.
             spp: samples per pixel of the image.
             seed: the path tracer's seed.
+            hair: per person slot, the posed hair's (H, 3) vertices and (H, 3) linear colours (the
+                renderer must have been built with ``hair=True``); a hair hit is reported by its
+                face index in the hair (``Frame.face``), which :func:`synth.labels.assign_hits`
+                tells from the body's faces by the hit position.
         """
         mi = self.mi
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
         if len(vertices) != len(self.meshes) or len(textures) != len(self.meshes):
             raise ValueError(f"need {len(self.meshes)} meshes and textures, got {len(vertices)}, {len(textures)}")
+        if (hair is not None) != self.hair or (hair is not None and len(hair) != len(self.meshes)):
+            raise ValueError(f"this renderer {'needs' if self.hair else 'has no'} a hair per person slot")
         # The first update of a freshly loaded scene renders a few pixels differently from every
         # later update of the same values (observed; making every scene value opaque at load time
         # does not remove it), so the first frame assigns twice. A trace of the previous image
@@ -252,7 +292,7 @@ class PeopleRenderer:
         for _ in range(1 if self._warm else 2):
             if not self._warm:
                 self._textures.clear()  # both warm-up assignments upload everything
-            self._assign(vertices, textures, camera, env, env_rotation, env_scale)
+            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair)
         self._warm = True
         sensors = self.scene.sensors()
         image = np.asarray(mi.TensorXf(mi.render(self.scene, sensor=sensors[0], spp=spp, seed=seed)))
@@ -276,7 +316,7 @@ class PeopleRenderer:
         face[~hit] = -1
         return Frame(rgb=rgb.astype(np.float32), alpha=alpha, hit=hit, position=position, face=face)
 
-    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale) -> None:
+    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale, hair=None) -> None:
         mi, p = self.mi, self.params
         import drjit as dr
 
@@ -293,6 +333,14 @@ class PeopleRenderer:
             if self._textures.get(i) is not tex:  # uploading 1024^2 texels costs ~3 ms
                 p[f"{key}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))
                 self._textures[i] = tex
+        for i, (v, colours) in enumerate(hair or []):
+            from synth.hair import hair_faces
+
+            key = f"group_{i}.hair_{i}" if self.instanced else f"hair_{i}"
+            normals = vertex_normals(np.asarray(v, np.float32), hair_faces(), self._hair_incidence())
+            p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).reshape(-1))
+            p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals).reshape(-1))
+            p[f"{key}.vertex_color"] = mi.Float(np.ascontiguousarray(colours, dtype=np.float32).reshape(-1))
         p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
         p["env.scale"] = opaque(env_scale)
         c, s = math.cos(env_rotation), math.sin(env_rotation)

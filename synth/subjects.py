@@ -272,8 +272,9 @@ def pose_subject(
 
     Returns:
         ``vertices`` (V, 3), ``faces`` (F, 3), ``vertex_bones`` (V,) and, from the registration in
-        that pose, ``keypoints`` (K, 3), ``joints`` (J, 3), ``angles`` (47,), ``bone_scales`` (J,)
-        and the parameters used (``pose``, ``global_orient``, ``transl``, ``bone``, ``shape``).
+        that pose, ``keypoints`` (K, 3), ``joints`` (J, 3), ``angles`` (47,), ``bone_scales`` (J,),
+        ``transforms`` (J, 3, 4) the skinning transforms (for :func:`synth.hair.pose_hair`), and the
+        parameters used (``pose``, ``global_orient``, ``transl``, ``bone``, ``shape``).
     """
     if pipeline not in PIPELINES:
         raise ValueError(f"unknown pipeline {pipeline!r} (known: {', '.join(PIPELINES)})")
@@ -305,6 +306,7 @@ def pose_subject(
         "angles": out.angles[0].numpy(),
         "bone_scales": out.bone_scales[0].numpy(),
         "rest_joints": out.rest_joints[0].numpy(),
+        "transforms": tr.numpy(),
         "pose": None if pose is None else pose,
         **{k: np.asarray(p[k], dtype=np.float32) for k in ("global_orient", "transl", "bone", "shape")},
     }

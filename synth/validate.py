@@ -16,7 +16,8 @@ Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLS
 - ``box`` is the bounding box of the person's mask and holds its visible keypoints;
 - the mask matches the projected mesh: the union of the people's projected triangles, tested at
   pixel centres, equals the foreground mask up to ``EDGE_PIXELS`` pixels on triangle edges;
-- every mask pixel's correspondence (face, barycentric) on the rebuilt mesh projects to the pixel's
+- every mask pixel's correspondence (face, barycentric) on the rebuilt mesh (the body, then its hair
+  rebuilt from the sample's ``hair`` spec, :mod:`synth.hair`) projects to the pixel's
   centre (``REPROJ_PX``) at the stored depth (``DEPTH_M``); parts and bones agree with the mask.
 """
 
@@ -68,6 +69,7 @@ class MeshRebuilder:
 
         self.model = blsm.load()
         self.subjects: dict[str, Any] = {}
+        self.hair: dict[tuple, Any] = {}
         self.dataset = dataset
         self.load = load_subject
         self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
@@ -91,6 +93,15 @@ class MeshRebuilder:
         if self.parents is not None:
             par, f = self.parents
             v = 0.5 * (v[par[:, 0]] + v[par[:, 1]])
+        if person.get("hair") is not None:  # the hair follows the body's faces (synth.labels)
+            from synth.hair import HairSpec, hair_faces, pose_hair, subject_hair
+
+            key = (sid, pipe, json.dumps(person["hair"], sort_keys=True))
+            if key not in self.hair:
+                self.hair[key] = subject_hair(s, self.model, HairSpec.from_json(person["hair"]), pipe)
+            hv = pose_hair(self.hair[key], out["transforms"])
+            v = np.concatenate([v, hv])
+            f = np.concatenate([f, hair_faces() + (len(v) - len(hv))])
         return v.astype(np.float64), f, kp
 
 

@@ -40,6 +40,8 @@ import torch
 from scipy.spatial import ConvexHull
 
 from blsm.joint_limits import angles_from_unconstrained
+from blsm.kinematics import forward_kinematics, joint_rotations, local_scales
+from blsm.lbs import linear_blend_skinning
 
 SAGITTAL = ("hip_l.flex", "knee_l.flex", "ankle_l.plantarflex", "hip_r.flex", "knee_r.flex", "ankle_r.plantarflex")
 TORSO_BONES = ("pelvis", "spine_01", "spine_02", "spine_03")
@@ -108,25 +110,50 @@ class PoseChecker:
             pts = template[(parts == torso) & (bones == j)]
             eq = ConvexHull(pts).equations  # (F, 4): n . p + d <= 0 inside, n unit
             self._hulls.append((j, eq))
+        # The checks read joints and a few surface keypoints only: forward kinematics and LBS of
+        # those keypoints' vertices replace a forward pass of the whole mesh (no pose-dependent
+        # blendshape changes the mean body's template, so the result is the same).
+        self._need = sorted({self._kp[n] for n in (*LIMB_POINTS, "heel_l", "heel_r")})
+        kv = model.keypoint_vertices[self._need]
+        sub, local = torch.unique(kv.reshape(-1), return_inverse=True)
+        self._sub_template = rest.template[0, sub].double()
+        self._sub_weights = model.weights[sub].double()
+        self._kp_local = local.reshape(kv.shape)
+        self._kp_weights = model.keypoint_weights[self._need].double()
+        self._kp_joint = model.keypoint_joint[self._need]
+        self._scales = local_scales(model.bone_mean.double()[None], model.parents_t)
+
+    def _skeleton(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The mean body in poses ``angles`` (B, 47): keypoints (B, K, 3) with only the checked
+        ones filled, joints (B, J, 3) and skinning transforms (B, J, 3, 4), as ``model(angles=...)``
+        gives them."""
+        m = self.model
+        angles = angles.double()
+        rot = joint_rotations(angles, m.dof_slots, m.dof_axis, m.dof_sign)
+        linear, offset, joints = forward_kinematics(
+            rot, self._scales.expand(len(angles), -1), m.heads.double(), m.frames.double(), m.parents, None, None
+        )
+        verts = linear_blend_skinning(self._sub_template.expand(len(angles), -1, -1), self._sub_weights, linear, offset)
+        surf = (verts[:, self._kp_local] * self._kp_weights[..., None]).sum(2)
+        at_joint = (self._kp_joint >= 0)[None, :, None]
+        kp = torch.zeros(len(angles), len(m.keypoint_names), 3, dtype=torch.float64)
+        kp[:, self._need] = torch.where(at_joint, joints[:, self._kp_joint.clamp(min=0)], surf)
+        return kp, joints, torch.cat([linear, offset[..., None]], dim=-1)
 
     def check(self, pose: torch.Tensor) -> PoseCheck:
         """Check unconstrained poses ``pose`` (B, 47) on the mean body."""
         m = self.model
         with torch.no_grad():
             angles = angles_from_unconstrained(pose.to(m.weights.dtype), m.dof_limits.to(m.weights.dtype))
-            out = m(angles=angles)
+            kp, joints, A = self._skeleton(angles)  # A: (B, J, 3, 4), rest -> posed
             straight = angles.clone()
             straight[:, self._sagittal] = 0.0
-            feet_out = m(angles=straight)
-        kp = out.keypoints.double()
-        joints = out.joints.double()
-        A = out.skinning_transforms.double()  # (B, J, 3, 4), rest -> posed
+            fk, _, A_straight = self._skeleton(straight)
         b, k = self._bone, self._kp
         self.last_inside = None
 
-        fk = feet_out.keypoints.double()
         # The pelvis' forward axis: its skinning rotation applied to the rest forward +Z.
-        forward = feet_out.skinning_transforms.double()[:, b["pelvis"], :, 2]
+        forward = A_straight[:, b["pelvis"], :, 2]
         feet = torch.stack(
             [fk[:, k["toe_tip_l"]] - fk[:, k["heel_l"]], fk[:, k["toe_tip_r"]] - fk[:, k["heel_r"]]], dim=1
         )  # (B, 2, 3)

@@ -106,3 +106,16 @@ def test_batch_results_match_single_poses(model, checker):
         one = checker.check(x[i : i + 1])
         assert one.plausible[0] == batch.plausible[i]
         np.testing.assert_allclose(one.foot_forward[0], batch.foot_forward[i], atol=1e-5)
+
+
+def test_the_checked_points_are_the_full_models(model, checker):
+    """The checker poses only the joints and the checked keypoints' vertices: they must be what a
+    forward pass of the whole mean body gives."""
+    from blsm.joint_limits import angles_from_unconstrained
+
+    angles = angles_from_unconstrained(torch.randn(16, 47, generator=torch.Generator().manual_seed(5)), model.dof_limits)
+    kp, joints, A = checker._skeleton(angles)
+    full = copy.deepcopy(model).double()(angles=angles.double())
+    need = checker._need
+    assert torch.allclose(kp[:, need], full.keypoints[:, need], atol=1e-9)
+    assert torch.allclose(joints, full.joints, atol=1e-9) and torch.allclose(A, full.skinning_transforms, atol=1e-9)

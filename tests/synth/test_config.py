@@ -22,7 +22,7 @@ def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("sede: 3\n", "sede: unknown key (known: background, camera, engine, ground, num, output, people, pipeline, poses,"),
+        ("sede: 3\n", "sede: unknown key (known: background, camera, engine, ground, hair, num, output, people, pipeline,"),
         ("camera:\n  focal: [1, 2]\n", "camera.focal: unknown key"),
         ("seed: three\n", "seed: expected an integer, got 'three'"),
         ("seed: true\n", "seed: expected an integer"),
@@ -41,6 +41,9 @@ def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
         ("camera: {height_m: [2, 1]}\n", "camera height_m must be [] or [low, high]"),
         ("camera: {f_number: [0.1, 2]}\n", "camera f_number must be [] or [low, high]"),
         ("ground: {samples: 0}\n", "ground.samples must be in [1, 1024]"),
+        ("hair: {styles: {short: -1}}\n", "hair.styles must be non-negative weights"),
+        ("hair: {styles: {short: 0, long: 0, tied: 0, curly: 0}}\n", "hair.styles must be non-negative weights, not all 0"),
+        ("hair: {styles: {mohawk: 1}}\n", "hair.styles.mohawk: unknown key"),
     ],
 )
 def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, message):

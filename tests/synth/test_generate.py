@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from synth import format as fmt
-from synth.config import BackgroundConfig, GeneratorConfig, OutputConfig, PeopleConfig, RenderConfig, SubjectsConfig
+from synth.config import BackgroundConfig, GeneratorConfig, HairConfig, OutputConfig, PeopleConfig, RenderConfig, SubjectsConfig
 from synth.camera import CameraConfig
 from synth.generate import generate, subdivide
 from synth.shards import read_shard, write_shard
@@ -105,6 +105,7 @@ def _edit_json(fields, fn):
         ("visible", "a visible keypoint lies outside the person's mask"),
         ("pose", "keypoints_3d differ from the rebuilt body"),
         ("depth", "depth differs from the correspondences"),
+        ("hair", "correspondences reproject"),
     ],
 )
 def test_validate_catches_labels_that_disagree_with_the_pixels(tiny, tmp_path, what, message):
@@ -120,12 +121,47 @@ def test_validate_catches_labels_that_disagree_with_the_pixels(tiny, tmp_path, w
             _edit_json(fields, lambda d: (d["people"][0]["visible"].__setitem__(0, True), d["people"][0]["in_frame"].__setitem__(0, True), d["people"][0]["keypoints_2d"].__setitem__(0, [0.5, 0.5])))
         elif what == "pose":
             _edit_json(fields, lambda d: d["people"][0]["blsm"]["pose"].__setitem__(20, d["people"][0]["blsm"]["pose"][20] + 0.5))
+        elif what == "hair":  # another hair than the one rendered
+            _edit_json(fields, lambda d: d["people"][0]["hair"].__setitem__("length", d["people"][0]["hair"]["length"] * 1.5))
         elif what == "depth":
             dep = fmt.decode_exr(fields["depth.exr"])
             fields["depth.exr"] = fmt.encode_exr(np.where(dep > 0, dep + 0.01, 0).astype(np.float32))
 
     rep = validate(_rewrite(tiny, tmp_path, edit))
     assert any(message in f for f in rep.failures), rep.failures
+
+
+def _hair_pixels(dataset: Path) -> tuple[int, int, set[str]]:
+    """(hair pixels, of them on the head part, styles) over a dataset's first shard."""
+    from synth.subjects import load_subject
+
+    n = on_head = 0
+    styles = set()
+    for fields in read_shard(dataset / "shard-000000.tar").values():
+        s = fmt.decode_sample(fields)
+        doc = s["json"]
+        head = doc["part_names"].index("head") + 1
+        for i, p in enumerate(doc["people"]):
+            faces = len(load_subject(dataset / "subjects" / f"{p['subject']}.npz").faces)
+            hair = (s["mask"] == i + 1) & (s["corr"][..., 0] >= faces)
+            n += int(hair.sum())
+            on_head += int((s["parts"][hair] == head).sum())
+            if "hair" in p:
+                styles.add(p["hair"]["style"])
+    return n, on_head, styles
+
+
+def test_hair_is_in_the_mask_on_the_head_and_off_when_asked(tiny, tmp_path):
+    from synth.hair import STYLES
+
+    n, on_head, styles = _hair_pixels(tiny)
+    assert n > 0 and on_head == n and styles and styles <= set(STYLES)
+    out = tmp_path / "bald"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    generate(dataclasses.replace(TINY, num=2, hair=HairConfig(enabled=False)), out, progress=False)
+    assert _hair_pixels(out) == (0, 0, set())
+    assert validate(out).failures == []
 
 
 def test_validate_catches_a_damaged_shard_and_exits_nonzero(tiny, tmp_path):
