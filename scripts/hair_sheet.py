@@ -2,7 +2,7 @@
 
     python scripts/hair_sheet.py docs/realism_hair.png [--subjects out/data/test/subjects]
 
-Each row is one subject with one style (the four styles in order), posed in the rest pose and
+Each row is one subject with one style (the four styles in order), every joint angle 0, and
 rendered with the generator's own renderer under a plain sky. Without ``--subjects`` four people
 are drawn from Anny (about 30 s each).
 """
@@ -48,7 +48,13 @@ def main(argv: list[str] | None = None) -> int:
     env[:24] = [1.6, 1.8, 2.2]  # a brighter sky above
     renderer = None
     rows = []
-    zero = {"pose": np.zeros(47, np.float32), "global_orient": np.zeros(3, np.float32), "transl": np.zeros(3, np.float32)}
+    import torch
+
+    from blsm.joint_limits import unconstrained_from_angles
+
+    lim = model.dof_limits  # every joint at angle 0 (clamped into its limits): standing straight
+    straight = unconstrained_from_angles(torch.zeros(1, len(lim)).clamp(lim[:, 0], lim[:, 1]), lim)[0].numpy()
+    zero = {"pose": straight.astype(np.float32), "global_orient": np.zeros(3, np.float32), "transl": np.zeros(3, np.float32)}
     for i, (s, style) in enumerate(zip(subjects, STYLES)):
         spec = sample_hair(np.random.default_rng([a.seed, i]), {style: 1.0}, s.meta.get("outfit", {}).get("hair", (0.1, 0.06, 0.03)))
         hair = subject_hair(s, model, spec, "rigged")

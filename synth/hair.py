@@ -256,6 +256,8 @@ def build_hair(
     path = [pos.copy()]
     anchor = np.empty((_DENSE + 1, NUM_STRANDS), np.int64)  # the skin vertex each point lies over
     anchor[0] = skin(pos)[2]
+    hang = np.zeros((_DENSE + 1, NUM_STRANDS))  # length hanging off the scalp (loose or in the tail)
+    let_go = anchor[0].copy()  # the skin vertex under the last point on the scalp
     for k in range(_DENSE):
         v, n, _ = skin(pos)
         if spec.style in ("short", "curly"):
@@ -303,6 +305,9 @@ def build_hair(
         pos = new
         path.append(pos.copy())
         anchor[k + 1] = i2
+        on_scalp = attached & ~tail
+        let_go[on_scalp] = i2[on_scalp]
+        hang[k + 1] = np.where(on_scalp, 0.0, hang[k] + moved)
     dense = np.stack(path, 1)  # (N, D + 1, 3)
 
     # Resample each strand to POINTS points evenly along its length.
@@ -312,10 +317,12 @@ def build_hair(
     u = np.linspace(0.0, 1.0, POINTS)[None] * total
     pts = np.empty((NUM_STRANDS, POINTS, 3))
     nearest = np.empty((NUM_STRANDS, POINTS), np.int64)
+    hanging = np.empty((NUM_STRANDS, POINTS))
     for i in range(NUM_STRANDS):
         for c in range(3):
             pts[i, :, c] = np.interp(u[i], arc[i], dense[i, :, c])
         nearest[i] = anchor[:, i][np.clip(np.searchsorted(arc[i], u[i]), 0, _DENSE)]
+        hanging[i] = np.interp(u[i], arc[i], hang[:, i])
     frac = u / total  # 0 at the root, 1 at the tip
     tang = _unit(np.gradient(pts, axis=1))
     if spec.curl > 0:
@@ -347,8 +354,16 @@ def build_hair(
     colours = np.clip(base[None, None] * (strand * along)[..., None], 0.0, 1.0)
     colours = np.repeat(colours, 2, axis=1).reshape(-1, 3)
 
-    # Weights: the skin's under each point, smoothed along the strand (roots keep their own).
+    # Weights: the skin's under each point, smoothed along the strand (roots keep their own). Hair
+    # hanging off the scalp (a ponytail, long hair below the head) goes over from the weights where
+    # it left the scalp to those of the nearest skin below the head within 15 cm, so that it hangs
+    # from the neck and shoulders instead of turning stiffly with the head.
     w = np.asarray(weights, np.float64)[nearest]  # (N, P, J)
+    if (hanging > 0).any():
+        body_idx = np.flatnonzero(near & (vb != bi["head"]))
+        below = body_idx[cKDTree(vertices[body_idx]).query(pts.reshape(-1, 3))[1]].reshape(NUM_STRANDS, POINTS)
+        a = np.clip(hanging / 0.15, 0.0, 1.0)[..., None]
+        w = np.where(hanging[..., None] > 0, (1 - a) * np.asarray(weights, np.float64)[let_go][:, None] + a * np.asarray(weights, np.float64)[below], w)
     sm = w.copy()
     for _ in range(2):
         sm[:, 1:-1] = 0.25 * sm[:, :-2] + 0.5 * sm[:, 1:-1] + 0.25 * sm[:, 2:]
