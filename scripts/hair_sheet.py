@@ -1,6 +1,6 @@
 """Contact sheet of the hair styles of synth.hair: one row per style, front, side and back views.
 
-    python scripts/hair_sheet.py docs/realism_hair.png [--subjects out/data/test/subjects]
+    python scripts/hair_sheet.py docs/realism_hair.jpg [--subjects out/data/test/subjects]
 
 Each row is one subject with one style (the four styles in order), every joint angle 0, and
 rendered with the generator's own renderer under a plain sky. Without ``--subjects`` four people
