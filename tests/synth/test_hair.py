@@ -124,3 +124,43 @@ def test_sample_hair_follows_the_weights_and_refuses_none():
         sample_hair(rng, {"short": 0.0}, (0.1, 0.1, 0.1))
     with pytest.raises(ValueError, match="hair style must be one of"):
         HairSpec("mohawk", 0.1, 0.01, 0.01, 0.0, (0.1, 0.1, 0.1), 0)
+
+
+def _frame_on(tri: np.ndarray, size: int = 4):
+    """A label pass whose every pixel centre hits face 0 of triangle ``tri`` (camera at the origin
+    looking down +z, focal 4 px): positions on the triangle's plane z = tri[0, 2]."""
+    from blsm.camera import Camera
+    from synth.render import Frame
+
+    K = np.array([[4.0, 0, size / 2], [0, 4.0, size / 2], [0, 0, 1]])
+    cam = Camera(K=K, R=np.eye(3), t=np.zeros(3), width=size, height=size)
+    v, u = np.mgrid[0:size, 0:size] + 0.5
+    z = tri[0, 2]
+    pos = np.stack([(u - size / 2) / 4.0 * z, (v - size / 2) / 4.0 * z, np.full(u.shape, z)], -1)
+    hit = np.ones((size, size), bool)
+    return cam, Frame(rgb=np.zeros((size, size, 3), np.float32), alpha=np.ones((size, size), np.float32), hit=hit,
+                      position=pos.astype(np.float32), face=np.zeros((size, size), np.int64))
+
+
+def test_hair_pixels_are_the_head_hide_surface_keypoints_not_joints():
+    from synth.labels import person_labels
+
+    big = np.array([[-5.0, -5.0, 0.0], [5.0, -5.0, 0.0], [0.0, 5.0, 0.0]])
+    body, hair = big + [0, 0, 1.02], big + [0, 0, 1.0]  # the hair 2 cm in front of the skin
+    cam, frame = _frame_on(hair)
+    person = {
+        "vertices": body, "faces": np.array([[0, 1, 2]]), "face_bones": np.array([5]),
+        "keypoints": np.array([[0.01, 0.01, 1.02], [0.01, 0.01, 1.1]]),  # an ear on the skin, a joint inside
+        "hair_vertices": hair, "hair_faces": np.array([[0, 1, 2]]), "hair_bone": 5,
+    }  # fmt: skip
+    bone_to_part = np.zeros(20, np.int64)
+    out = person_labels(frame, cam, [person], bone_to_part, [{5}, {5}], np.array([False, True]))
+    assert out["unassigned"] == 0 and (out["mask"] == 1).all() and (out["bones"] == 6).all()
+    assert (out["corr"][..., 0] == 1).all()  # the hair's face 0 follows the body's one face
+    np.testing.assert_allclose(out["depth"], 1.0, atol=1e-6)
+    assert out["people"][0]["visible"].tolist() == [False, True]
+    # Without hair the same ray hits the skin and the ear is visible.
+    cam, frame = _frame_on(body)
+    bald = {k: v for k, v in person.items() if not k.startswith("hair")}
+    out = person_labels(frame, cam, [bald], bone_to_part, [{5}, {5}], np.array([False, True]))
+    assert (out["corr"][..., 0] == 0).all() and out["people"][0]["visible"].tolist() == [True, True]
