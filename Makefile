@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-model recovery-ablation clean-venv
+.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-data-motions recovery-data-before recovery-model recovery-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -60,17 +60,29 @@ motions: $(STAMP)
 prior: $(STAMP)
 	$(BIN)/blsm mocap fit-prior out/motions --out blsm/data/pose_prior_cmu.npz --exclude 007_12 005_20
 
-# The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation
-# and the three 10k-image training sets under out/data (about 55 minutes on 2 cores; resumable).
-recovery-data: $(STAMP)
+# The motion libraries of the recovery datasets: the held-out test clips and the 45 training clips.
+recovery-data-motions: $(STAMP)
 	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
 	test -f out/motions_train/summary.csv || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_train --fps 30 --workers 2 \
 		--clips $$(ls $(MOCAP)/*.bvh | xargs -n1 basename | sed 's/\.bvh$$//' | grep -v -e '^007_12$$' -e '^005_20$$')
+
+# The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation
+# and the three 10k-image training sets under out/data (about 55 minutes on 2 cores; resumable).
+recovery-data: recovery-data-motions
 	$(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
 	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/data/train_hdri --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_mocap.yaml --out out/data/train_mocap --workers 2 --resume
+
+# The same five datasets as the generator made them before the realism work (issue 18's 2 x 2 table,
+# docs/realism.md): every new option off, which gives the old generator's bytes. Into out/data_before.
+BEFORE_REALISM = --set 'subjects.age=[0, 90]' --set subjects.children=0 --set poses.plausible=false \
+	--set 'camera.height_m=[]' --set render.denoise=false --set ground.shadows=false --set hair.enabled=false
+recovery-data-before: $(STAMP)
+	$(MAKE) recovery-data-motions
+	for s in test val train_hdri train_sky train_mocap; do \
+		$(BIN)/synth generate configs/synth/$$s.yaml --out out/data_before/$$s --workers 2 --resume $(BEFORE_REALISM) || exit 1; done
 
 # The packaged HMR-BLSM (docs/recovery.md): train (about 55 minutes on 2 cores; an interrupted run
 # continues), evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.

@@ -23,7 +23,7 @@ def _generate(args: argparse.Namespace) -> int:
     from synth.config import GeneratorConfig, load_config
     from synth.generate import generate
 
-    cfg = load_config(args.config) if args.config != "-" else GeneratorConfig()
+    cfg = load_config(args.config, args.set or ()) if args.config != "-" or args.set else GeneratorConfig()
     if args.num is not None:
         cfg = dataclasses.replace(cfg, num=args.num)
     if args.skip_bad:
@@ -85,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("config", help="configs/synth/*.yaml, or - for the embedded defaults")
     g.add_argument("--out", required=True, type=Path)
     g.add_argument("--num", type=int, help="number of images (overrides the config)")
+    g.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override one config key, VALUE in YAML (repeatable; e.g. --set hair.enabled=false)")
     g.add_argument("--workers", type=int, default=1)
     g.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
     g.add_argument("--skip-bad", action="store_true", help="skip and list bad samples or scans instead of stopping")

@@ -312,8 +312,41 @@ class GeneratorConfig:
             )
 
 
-def load_config(path: str | Path) -> GeneratorConfig:
-    """Read a generator configuration file (YAML); see the module docstring."""
-    path = Path(path)
-    data = read_yaml(path, "config")
-    return from_dict(GeneratorConfig, data, str(path))
+def apply_overrides(data: Any, overrides: list[str] | tuple[str, ...], where: str) -> dict:
+    """``data`` (a config mapping) with ``KEY=VALUE`` overrides applied: ``KEY`` a dotted path
+    (``hair.enabled``, ``render.spp``), ``VALUE`` parsed as YAML (``false``, ``8``, ``[0, 90]``,
+    ``[]``). Missing sections are created; the keys are then checked like the file's own."""
+    import copy
+
+    import yaml
+
+    out = copy.deepcopy(data) if data is not None else {}
+    if not isinstance(out, dict):
+        return out  # from_dict reports the file's problem
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key or any(not k for k in key.split(".")):
+            raise ValueError(f"{where}: override {item!r} is not KEY=VALUE (e.g. hair.enabled=false)")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{where}: override {key}: not a YAML value ({str(exc).splitlines()[0]})") from None
+        node = out
+        parts = key.split(".")
+        for k in parts[:-1]:
+            if not isinstance(node.get(k, {}), dict):
+                raise ValueError(f"{where}: override {key}: {k} is not a section")
+            node = node.setdefault(k, {})
+        node[parts[-1]] = value
+    return out
+
+
+def load_config(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> GeneratorConfig:
+    """Read a generator configuration file (YAML; ``-`` for the embedded defaults) and apply
+    ``KEY=VALUE`` overrides (:func:`apply_overrides`); see the module docstring."""
+    where = "(defaults)" if str(path) == "-" else str(path)
+    data = {} if str(path) == "-" else read_yaml(Path(path), "config")
+    if overrides:
+        data = apply_overrides(data, overrides, where)
+        where += " with --set " + " ".join(overrides)
+    return from_dict(GeneratorConfig, data, where)

@@ -56,3 +56,30 @@ def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, mes
     assert message in msg, msg
     with pytest.raises(ValueError, match="cannot read"):
         load_config(tmp_path / "absent.yaml")
+
+
+def test_overrides_set_dotted_keys_as_yaml_values(tmp_path):
+    p = tmp_path / "c.yaml"
+    p.write_text("render: {spp: 32}\n")
+    cfg = load_config(p, ["hair.enabled=false", "render.denoise=false", "subjects.age=[0, 90]", "camera.height_m=[]"])
+    assert cfg.render.spp == 32 and not cfg.render.denoise and not cfg.hair.enabled
+    assert cfg.subjects.age == (0.0, 90.0) and cfg.camera.height_m == ()
+    assert load_config("-", ["num=5"]).num == 5
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("hair.enabled", "override 'hair.enabled' is not KEY=VALUE"),
+        ("hair..enabled=1", "is not KEY=VALUE"),
+        ("render.spp.x=1", "override render.spp.x: spp is not a section"),
+        ("hair.colour=red", "with --set hair.colour=red: hair.colour: unknown key"),
+        ("render.spp=[", "override render.spp: not a YAML value"),
+    ],
+)
+def test_bad_overrides_are_one_line_errors(tmp_path, override, message):
+    p = tmp_path / "c.yaml"
+    p.write_text("render: {spp: 32}\n")
+    with pytest.raises(ValueError) as exc:
+        load_config(p, [override])
+    assert message in str(exc.value) and str(p) in str(exc.value) and "\n" not in str(exc.value)
