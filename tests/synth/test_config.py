@@ -83,3 +83,12 @@ def test_bad_overrides_are_one_line_errors(tmp_path, override, message):
     with pytest.raises(ValueError) as exc:
         load_config(p, [override])
     assert message in str(exc.value) and str(p) in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_default_yaml_writes_out_the_embedded_defaults():
+    from pathlib import Path
+
+    from synth.config import GeneratorConfig
+
+    root = Path(__file__).resolve().parents[2]
+    assert load_config(root / "configs" / "synth" / "default.yaml") == GeneratorConfig()
