@@ -258,10 +258,10 @@ class HairStyles:
 
 @dataclass(frozen=True)
 class HairConfig:
-    """Hair geometry on the people (:mod:`synth.hair`; on by default): each subject gets one hair,
-    its style drawn by ``styles``' weights, in the colour of its painted hair. The ``raw`` pipeline
-    shows scans as captured and grows no hair. Off, people have only the painted hair cap, as
-    before."""
+    """Hair geometry on the people (:mod:`synth.hair`; on by default): each of Anny's people gets
+    one hair, its style drawn by ``styles``' weights, in the colour of its painted hair. User scans
+    (``subjects.source: folder``) carry their own hair and the ``raw`` pipeline shows scans as
+    captured: neither grows any. Off, people have only the painted hair cap, as before."""
 
     enabled: bool = True
     styles: HairStyles = field(default_factory=HairStyles)

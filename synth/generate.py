@@ -253,7 +253,8 @@ class SampleMaker:
             self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
         elif b.kind == "images":
             self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
-        self.hair = cfg.hair.enabled and cfg.pipeline != "raw"
+        # Hair is grown on Anny's stand-in people only: user scans carry their own.
+        self.hair = cfg.hair.enabled and cfg.pipeline != "raw" and cfg.subjects.source == "anny"
         self.head_bone = list(m.bone_names).index("head")
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, dict[str, Any]] = {}
@@ -360,8 +361,7 @@ class SampleMaker:
             c = 0.5 * (xz.min(0) + xz.max(0))
             foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
         for p, v, idx, d in zip(people, shells, hulls, place_people(foot, cfg.people.gap, rng)):
-            floor = p["vertices"][:, 1].min() if "hair" in p else v[idx, 1].min()
-            d = d - np.array([0.0, floor, 0.0])  # feet on the floor y = 0
+            d = d - np.array([0.0, p["vertices"][:, 1].min(), 0.0])  # the body's feet on the floor y = 0
             for k in ("vertices", "keypoints", "joints", "hair"):
                 if k in p:
                     p[k] = (p[k] + d).astype(np.float32)
