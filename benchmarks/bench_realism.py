@@ -131,7 +131,10 @@ def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref
              "128 spp, no denoiser, no shadows, no hair": variant_cfg(128, False, False)}
     for spp in spp_list:
         conds[f"{spp} spp, denoiser, no shadows, no hair"] = variant_cfg(spp, True, False)
-    conds[f"after: every default ({base.render.spp} spp, denoiser, shadows, hair)"] = base
+    spp0 = base.render.spp
+    conds[f"{spp0} spp, denoiser, shadows, no hair"] = variant_cfg(spp0, True, True, False)
+    conds[f"{spp0} spp, denoiser, no shadows, hair"] = variant_cfg(spp0, True, False, True)
+    conds[f"after: every default ({spp0} spp, denoiser, shadows, hair)"] = base
     # The references: the same scenes at ref_spp undenoised, without and with the shadows and hair.
     scene_of = {name: (cfg.ground.shadows, cfg.hair.enabled) for name, cfg in conds.items()}
     ref_cfgs = {k: variant_cfg(ref_spp, False, *k) for k in set(scene_of.values())}
@@ -139,6 +142,8 @@ def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref
     def render_all(cfg) -> tuple[list[np.ndarray], float]:
         maker = SampleMaker(cfg, work, variant, threads=0)
         maker.make(0, sample_rng(cfg.seed, 0))  # warm-up: kernels compile once
+        for si in range(len(maker.subjects)):  # per-subject work (render mesh, hair) is made once
+            maker.rig(si)
         t0 = time.perf_counter()
         out = [fmt.decode_png(maker.make(i, sample_rng(cfg.seed, i))["rgb.png"], "rgb") for i in range(1, scenes + 1)]
         return out, (time.perf_counter() - t0) / scenes
