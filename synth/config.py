@@ -187,6 +187,9 @@ class BackgroundConfig:
             raise ValueError(f"background.env_width must be in [64, 8192], got {self.env_width}")
 
 
+SAMPLERS = ("independent", "stratified", "multijitter", "ldsampler", "orthogonal")  # Mitsuba's
+
+
 @dataclass(frozen=True)
 class RenderConfig:
     """Mitsuba settings: samples per pixel, path depth, the variant (empty: llvm on CPU, cuda where
@@ -200,10 +203,16 @@ class RenderConfig:
     variant: str = ""
     recycle_after: int = 2000
     denoise: bool = True
+    denoise_quality: str = "high"
+    sampler: str = "independent"
 
     def __post_init__(self) -> None:
         if self.spp < 1 or self.max_depth < 1 or self.recycle_after < 1:
             raise ValueError("render.spp, render.max_depth and render.recycle_after must be positive")
+        if self.denoise_quality not in ("high", "balanced", "fast"):
+            raise ValueError(f"render.denoise_quality must be high, balanced or fast, got {self.denoise_quality!r}")
+        if self.sampler not in SAMPLERS:
+            raise ValueError(f"render.sampler must be one of {', '.join(SAMPLERS)}, got {self.sampler!r}")
 
 
 @dataclass(frozen=True)

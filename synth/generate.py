@@ -327,6 +327,7 @@ class SampleMaker:
                 env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
                 max_depth=self.cfg.render.max_depth, backplate=backplate,
                 denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
+                sampler=self.cfg.render.sampler, denoise_quality=self.cfg.render.denoise_quality,
             )  # fmt: skip
             self._renderers[key] = r
         return r

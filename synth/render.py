@@ -103,6 +103,8 @@ class PeopleRenderer:
         denoise: bool = False,
         denoise_threads: int = 1,
         hair: bool = False,
+        sampler: str = "independent",
+        denoise_quality: str = "high",
     ) -> None:
         """Load the scene.
 
@@ -112,9 +114,12 @@ class PeopleRenderer:
             denoise: render albedo and normal with the image's own samples and denoise the image
                 with Open Image Denoise (:mod:`synth.denoise`); labels are not affected.
             denoise_threads: CPU threads of the denoiser.
+            denoise_quality: OIDN's ``high``, ``balanced`` or ``fast`` filter.
             hair: every person slot also holds a hair (:mod:`synth.hair`; the same topology for all):
                 ribbons with per-vertex colour, seen from both sides, slightly glossy (a two-sided
                 principled BSDF, roughness 0.45, specular 0.35).
+            sampler: the path tracer's Mitsuba sampler (``independent``, or a stratified,
+                multi-jittered or low-discrepancy one: less noise at the same samples per pixel).
         """
         self.variant = resolve_variant(variant)
         self.instanced = instanced
@@ -135,7 +140,7 @@ class PeopleRenderer:
         if denoise:
             from synth.denoise import shared_denoiser
 
-            self.denoiser = shared_denoiser(denoise_threads)
+            self.denoiser = shared_denoiser(denoise_threads, denoise_quality)
             # The path tracer nested in the AOV integrator: colour, albedo and normal of the same
             # samples (film channels R, G, B, A, albedo RGB, normal XYZ).
             path = {"type": "aov", "aovs": "alb:albedo,nn:sh_normal", "image": path}
@@ -144,7 +149,7 @@ class PeopleRenderer:
             "integrator": path,
             "sensor": {
                 **sensor_common,
-                "sampler": {"type": "independent", "sample_count": 16},
+                "sampler": {"type": sampler, "sample_count": 16},
                 "film": {
                     "type": "hdrfilm",
                     "width": width,

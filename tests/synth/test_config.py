@@ -41,6 +41,8 @@ def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
         ("camera: {height_m: [2, 1]}\n", "camera height_m must be [] or [low, high]"),
         ("camera: {f_number: [0.1, 2]}\n", "camera f_number must be [] or [low, high]"),
         ("ground: {samples: 0}\n", "ground.samples must be in [1, 1024]"),
+        ("render: {sampler: sobol}\n", "render.sampler must be one of independent, stratified, multijitter"),
+        ("render: {denoise_quality: best}\n", "render.denoise_quality must be high, balanced or fast"),
         ("hair: {styles: {short: -1}}\n", "hair.styles must be non-negative weights"),
         ("hair: {styles: {short: 0, long: 0, tied: 0, curly: 0}}\n", "hair.styles must be non-negative weights, not all 0"),
         ("hair: {styles: {mohawk: 1}}\n", "hair.styles.mohawk: unknown key"),
