@@ -13,7 +13,9 @@ darkens under them: they float. The shadow catcher puts the missing shadows onto
    ``S(x) = E_x / E`` is estimated with ``samples`` directions drawn with density proportional to
    ``L(w) cos(theta)`` over the upper hemisphere (importance sampling of the environment map's
    texels, so a sun's sharp shadow and the sky's soft contact shadow are both found):
-   ``S(x) = (1/n) sum_i V(x, w_i)``. Rays that miss the people's bounding sphere are unoccluded and
+   ``S(x) = (1/n) sum_i V(x, w_i)``. The directions are drawn once per image (a pool of 8192)
+   and every ground point takes its ``n`` from the pool at random, which costs a fraction of
+   drawing ``n`` fresh directions for every point. Rays that miss the people's bounding sphere are unoccluded and
    are not traced; the others are tested against the people's meshes with Mitsuba's
    ``Scene.ray_test`` (the renderer's own scene, so the people are exactly the rendered ones).
 3. ``S`` is smoothed by a normalised 5 x 5 box filter over ground pixels (Monte Carlo noise),
@@ -71,8 +73,12 @@ def env_lookup(env: np.ndarray, directions: np.ndarray, rotation: float = 0.0, s
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
     xa, xb = x0 % w, (x0 + 1) % w
     ya, yb = np.clip(y0, 0, h - 1), np.clip(y0 + 1, 0, h - 1)
-    e = env.astype(np.float64)
-    out = (e[ya, xa] * (1 - fx) + e[ya, xb] * fx) * (1 - fy) + (e[yb, xa] * (1 - fx) + e[yb, xb] * fx) * fy
+    e = env.reshape(h * w, -1)  # gathered texels only are widened (no copy of the whole map)
+
+    def texel(r: np.ndarray, c: np.ndarray) -> np.ndarray:
+        return e[r * w + c].astype(np.float64)
+
+    out = (texel(ya, xa) * (1 - fx) + texel(ya, xb) * fx) * (1 - fy) + (texel(yb, xa) * (1 - fx) + texel(yb, xb) * fx) * fy
     return (out * scale).astype(np.float32)
 
 
@@ -91,9 +97,19 @@ def pixel_rays(camera: Camera, offsets: np.ndarray | None = None) -> tuple[np.nd
     return centre, world
 
 
-def env_backdrop(camera: Camera, env: np.ndarray, rotation: float, scale: float, supersample: int = 2) -> np.ndarray:
-    """(H, W, 3) the environment as a camera sees it, ``supersample``^2 stratified rays a pixel."""
-    s = supersample
+def backdrop_supersampling(camera: Camera, env_width: int) -> int:
+    """Rays per pixel side that :func:`env_backdrop` needs: 1 while a pixel spans no more than one
+    texel of the lat-long map (the bilinear lookup is then already the pixel's average, as for
+    the training sets' 192 px views of 1K maps), else enough that each ray steps about a texel."""
+    pixel = 2.0 * math.atan(0.5 * camera.width / float(camera.K[0, 0])) / camera.width  # radians, at the centre
+    texel = 2.0 * math.pi / env_width
+    return int(min(4, max(1, math.ceil(pixel / texel - 1e-9))))
+
+
+def env_backdrop(camera: Camera, env: np.ndarray, rotation: float, scale: float, supersample: int | None = None) -> np.ndarray:
+    """(H, W, 3) the environment as a camera sees it, ``supersample``^2 stratified rays a pixel
+    (None: :func:`backdrop_supersampling`)."""
+    s = backdrop_supersampling(camera, env.shape[1]) if supersample is None else supersample
     g = (np.arange(s) + 0.5) / s
     offsets = np.stack(np.meshgrid(g, g, indexing="xy"), axis=-1).reshape(-1, 2)
     _, dirs = pixel_rays(camera, offsets)
@@ -163,6 +179,7 @@ def shadow_ratio(
     samples: int = 32,
     max_distance: float = 60.0,
     exclude: np.ndarray | None = None,
+    pool: int = 8192,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The shadow ratio ``S`` (H, W) in [0, 1] on the ground (1 elsewhere), and the ground mask.
 
@@ -171,6 +188,10 @@ def shadow_ratio(
             person (:func:`mitsuba_ray_test`).
         people_sphere: centre and radius of a sphere around every person (rays missing it are free).
         exclude: (H, W) bool pixels to skip (those a person covers).
+        pool: the directions are drawn once per image, ``pool`` of them with density
+            ``L cos``; each ground pixel takes ``samples`` of them uniformly at random (a
+            resampling of that discrete estimate of the environment, so ``S`` stays an unbiased
+            estimate of the pool's shadow; 0: every ray draws its own direction, slower).
     """
     mask, pts = ground_points(camera, max_distance)
     if exclude is not None:
@@ -180,7 +201,11 @@ def shadow_ratio(
         return ratio.astype(np.float32), mask
     x = pts[mask]  # (P, 3)
     p = len(x)
-    dirs = EnvSampler(env, rotation).sample(p * samples, rng).reshape(p, samples, 3)
+    sampler = EnvSampler(env, rotation)
+    if pool:
+        dirs = sampler.sample(pool, rng)[rng.integers(0, pool, size=(p, samples))]
+    else:
+        dirs = sampler.sample(p * samples, rng).reshape(p, samples, 3)
     origins = np.repeat(x[:, None], samples, axis=1) + np.array([0.0, 1e-4, 0.0])
     c, r = people_sphere
     oc = origins - c

@@ -148,3 +148,24 @@ def test_defocus_is_the_identity_in_focus_and_a_disc_convolution_at_constant_blu
     half = defocus(img, np.full((24, 30), 5.0))
     four = np.stack([convolve(img[..., c], disc_kernel(4.0), mode="nearest") for c in range(3)], -1)
     np.testing.assert_allclose(half, 0.5 * (four + want), atol=1e-6)
+
+
+def test_backdrop_takes_one_ray_a_pixel_while_pixels_are_smaller_than_texels():
+    from synth.ground import backdrop_supersampling, env_backdrop
+
+    rng = np.random.default_rng(0)
+    env = rng.uniform(0.0, 2.0, (128, 256, 3)).astype(np.float32)  # 1.4 degrees a texel
+    def cam(f):
+        c = look_at_camera(np.array([0.0, 1.7, 4.0]), np.array([0.0, 1.0, 0.0]), width=48, height=48)
+        return Camera(K=np.array([[f, 0, 24.0], [0, f, 24.0], [0, 0, 1]]), R=c.R, t=c.t, width=48, height=48)
+    tele, wide = cam(400.0), cam(15.0)  # 0.14 and 2.4 degrees a pixel at the centre
+    assert backdrop_supersampling(tele, 256) == 1
+    assert backdrop_supersampling(wide, 256) == 2
+    assert backdrop_supersampling(cam(45.0), 256) == 1  # 1.17 degrees, under a texel
+    # Magnified, one bilinear lookup is the pixel's average: 4 x 4 rays change it by little.
+    a, b = env_backdrop(tele, env, 0.2, 1.0), env_backdrop(tele, env, 0.2, 1.0, supersample=4)
+    assert np.abs(a - b).mean() < 0.02 * b.mean()
+    # Minified, one ray a pixel aliases; the chosen count is close to a dense average.
+    dense = env_backdrop(wide, env, 0.2, 1.0, supersample=8)
+    auto, one = env_backdrop(wide, env, 0.2, 1.0), env_backdrop(wide, env, 0.2, 1.0, supersample=1)
+    assert np.abs(auto - dense).mean() < 0.5 * np.abs(one - dense).mean()
