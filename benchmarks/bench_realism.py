@@ -11,8 +11,10 @@ Writes two sections of ``--out`` (between ``<!-- bench:... -->`` markers) and
   through the torso, and the re-draw (rejection) rate;
 - **ages**: the ages of ``--people`` people of the default population against Anny's own (0-90);
 - **noise** (``--noise CONFIG``): the same ``--scenes`` scenes of a generator config rendered as the
-  generator did before this work (16 spp, no denoiser, no shadow catcher, no hair: ``before``),
-  undenoised at 128 spp, at each of ``--spp`` with the denoiser, and with every new default
+  generator did before this work (independent sampler, 16 spp, no denoiser, no shadow catcher, no
+  hair: ``before``), undenoised at 128 spp (the acceptance's bar), with each ``--render`` setting
+  (a Mitsuba sampler, spp, with or without the denoiser), the defaults' render settings without
+  and with the shadow catcher and hair, and with every new default
   (``after``), against a 1024-spp undenoised reference of the same scenes (with shadows and hair for
   ``after``); PSNR of the written 8-bit sRGB images and time per image (the
   whole sample, labels included), alternating rounds, medians. Subjects are made once into
@@ -106,7 +108,7 @@ def ages_section(n: int, png: Path) -> str:
     return "\n".join(lines)
 
 
-def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref_spp: int, rounds: int) -> str:
+def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_spp: int, rounds: int) -> str:
     import dataclasses
 
     from blsm.mitsuba_util import resolve_variant
@@ -122,19 +124,23 @@ def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref
     prepare_subjects(base, work, blsm.load())
     variant = resolve_variant(base.render.variant or None)
 
-    def variant_cfg(spp: int, denoise: bool, shadows: bool, hair: bool = False):
-        return dataclasses.replace(base, render=dataclasses.replace(base.render, spp=spp, denoise=denoise),
+    def variant_cfg(spp: int, denoise: bool, shadows: bool, hair: bool = False, sampler: str = "independent"):
+        return dataclasses.replace(base, render=dataclasses.replace(base.render, spp=spp, denoise=denoise, sampler=sampler),
                                    ground=dataclasses.replace(base.ground, shadows=shadows),
                                    hair=dataclasses.replace(base.hair, enabled=hair))
 
-    conds = {"before: 16 spp, no denoiser, no shadows, no hair": variant_cfg(16, False, False),
-             "128 spp, no denoiser, no shadows, no hair": variant_cfg(128, False, False)}
-    for spp in spp_list:
-        conds[f"{spp} spp, denoiser, no shadows, no hair"] = variant_cfg(spp, True, False)
-    spp0 = base.render.spp
-    conds[f"{spp0} spp, denoiser, shadows, no hair"] = variant_cfg(spp0, True, True, False)
-    conds[f"{spp0} spp, denoiser, no shadows, hair"] = variant_cfg(spp0, True, False, True)
-    conds[f"after: every default ({spp0} spp, denoiser, shadows, hair)"] = base
+    conds = {"before: independent 16 spp, no denoiser, no shadows, no hair": variant_cfg(16, False, False),
+             "independent 128 spp, no denoiser, no shadows, no hair (the bar)": variant_cfg(128, False, False)}
+    for spec in specs:  # sampler:spp[:dn]
+        sampler, spp, *dn = spec.split(":")
+        conds[f"{sampler} {spp} spp, {'denoiser' if dn else 'no denoiser'}, no shadows, no hair"] = variant_cfg(
+            int(spp), bool(dn), False, False, sampler)
+    r0 = base.render
+    name0 = f"{r0.sampler} {r0.spp} spp, {'denoiser' if r0.denoise else 'no denoiser'}"
+    conds[f"defaults' render ({name0}), no shadows, no hair"] = variant_cfg(r0.spp, r0.denoise, False, False, r0.sampler)
+    conds[f"{name0}, shadows, no hair"] = variant_cfg(r0.spp, r0.denoise, True, False, r0.sampler)
+    conds[f"{name0}, no shadows, hair"] = variant_cfg(r0.spp, r0.denoise, False, True, r0.sampler)
+    conds[f"after: every default ({name0}, shadows, hair)"] = base
     # The references: the same scenes at ref_spp undenoised, without and with the shadows and hair.
     scene_of = {name: (cfg.ground.shadows, cfg.hair.enabled) for name, cfg in conds.items()}
     ref_cfgs = {k: variant_cfg(ref_spp, False, *k) for k in set(scene_of.values())}
@@ -169,7 +175,7 @@ def noise_section(config: str, work: Path, scenes: int, spp_list: list[int], ref
         t = float(np.median(times[name]))
         lines.append(f"| {name} | {quality[name]:.2f} | {t:.3f} | {t / before:.2f} |")
     lines += ["", f"Command: `python benchmarks/bench_realism.py --noise {config} --scenes {scenes} "
-              f"--spp {' '.join(map(str, spp_list))} --ref-spp {ref_spp} --rounds {rounds}`."]
+              f"--render {' '.join(specs)} --ref-spp {ref_spp} --rounds {rounds}`."]
     return "\n".join(lines)
 
 
@@ -181,7 +187,9 @@ def main() -> None:
     ap.add_argument("--noise", metavar="CONFIG", help="also measure the denoiser (a generator config)")
     ap.add_argument("--work", default="out/bench_realism", help="subjects for --noise")
     ap.add_argument("--scenes", type=int, default=12)
-    ap.add_argument("--spp", type=int, nargs="+", default=[4, 8, 16])
+    ap.add_argument("--render", nargs="+", default=["independent:16:dn", "multijitter:16", "multijitter:25",
+                                                    "multijitter:36", "multijitter:16:dn", "multijitter:25:dn"],
+                    help="render settings to compare, SAMPLER:SPP[:dn] (dn: with the denoiser)")
     ap.add_argument("--ref-spp", type=int, default=1024)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--skip", nargs="*", default=[], choices=["poses", "ages"], help="sections not to run")
@@ -189,7 +197,7 @@ def main() -> None:
     torch.set_num_threads(1)
     out = Path(args.out)
     if args.noise:
-        _replace_section(out, "realism-noise", noise_section(args.noise, Path(args.work), args.scenes, args.spp,
+        _replace_section(out, "realism-noise", noise_section(args.noise, Path(args.work), args.scenes, args.render,
                                                              args.ref_spp, args.rounds))
         print(f"noise: {out}")
     if "poses" not in args.skip:
