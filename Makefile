@@ -72,8 +72,9 @@ recovery-data: $(STAMP)
 	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_mocap.yaml --out out/data/train_mocap --workers 2 --resume
 
-# The packaged HMR-BLSM (docs/recovery.md): train (about 55 minutes on 2 cores; an interrupted run
-# continues), evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
+# The packaged HMR-BLSM (docs/recovery.md): train (7500 steps, about 85 minutes on 2 cores at the speed
+# of docs/benchmarks.md; an interrupted run continues), evaluate on the held-out test set, export the
+# float16 checkpoint. Needs recovery-data.
 recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume
 	$(BIN)/recovery evaluate out/runs/hmr_blsm_lite0/best.pt out/data/test --out out/eval/hmr_blsm_lite0
