@@ -164,6 +164,7 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
         model.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f"{path}: weights do not fit the network of its config ({str(exc).splitlines()[0][:160]})") from None
+    model.backbone.use_channels_last(cfg.train.channels_last)
     model.eval()
     info = {k: ck.get(k) for k in ("step", "saved", "best", "train_summary")}
     return Predictor(model=model, body=body, config=cfg, path=path, info=info, regressor=regressor)
