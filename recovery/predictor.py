@@ -21,7 +21,7 @@ import blsm
 from blsm.io import sha256_file
 from recovery.config import RecoveryConfig, config_from_json
 from recovery.geometry import cam_to_translation, project
-from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, predict_body
+from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, flip_average, predict_body
 from recovery.trainer import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_checkpoint, save_atomic
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "data" / "hmr_blsm_default.pt"
@@ -63,6 +63,7 @@ class Predictor:
     path: Path
     info: dict[str, Any]
     regressor: torch.Tensor | None = None  # (K, V) keypoints from vertices (mesh network)
+    flip: bool = False  # HMR-BLSM: average with the mirrored prediction on the flipped crop
 
     @property
     def crop(self) -> int:
@@ -87,8 +88,11 @@ class Predictor:
         """(B, 3, crop, crop) RGB in [0, 1] and (B, 3, 3) ``K_crop`` -> :class:`Prediction`."""
         dev = next(self.model.parameters()).device
         k_crop = k_crop.to(dev)
-        out = self.model(images.to(dev))
+        images = images.to(dev)
+        out = self.model(images)
         if self.task == "hmr_blsm":
+            if self.flip:
+                out = flip_average(self.body, out, self.model(images.flip(-1)))
             b = predict_body(self.body, out, k_crop, self.crop)
             rest = self.body(pose=out.pose, bone=out.bone, shape=out.shape)
             return Prediction(vertices=b.vertices, keypoints_3d=b.keypoints_3d, transl=b.transl,
