@@ -72,8 +72,8 @@ recovery-data: $(STAMP)
 	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_mocap.yaml --out out/data/train_mocap --workers 2 --resume
 
-# The packaged HMR-BLSM (docs/recovery.md): train (7500 steps, about 85 minutes on 2 cores at the speed
-# of docs/benchmarks.md, 127 measured on 2026-11-26 at 60 % of it; an interrupted run continues),
+# The packaged HMR-BLSM (docs/recovery.md): train (9000 steps, about 135 minutes on 2 cores measured
+# on 2026-11-26; an interrupted run continues),
 # evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
 recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume
