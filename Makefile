@@ -72,7 +72,7 @@ recovery-data: $(STAMP)
 	$(BIN)/synth generate configs/synth/train_sky.yaml --out out/data/train_sky --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_mocap.yaml --out out/data/train_mocap --workers 2 --resume
 
-# The packaged HMR-BLSM (docs/recovery.md): train (9000 steps, about 135 minutes on 2 cores measured
+# The packaged HMR-BLSM (docs/recovery.md): train (9000 steps, about 143 minutes on 2 cores measured
 # on 2026-11-26; an interrupted run continues),
 # evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
 recovery-model: $(STAMP)
