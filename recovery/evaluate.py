@@ -143,10 +143,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     recorded as ``flip_test`` in the metrics.
     """
     t0 = time.perf_counter()
-    pr = load_predictor(checkpoint)
-    if flip and pr.task != "hmr_blsm":
-        raise ValueError(f"{pr.path}: --flip averages HMR-BLSM parameters; this is a {pr.task!r} checkpoint")
-    pr.flip = flip
+    pr = load_predictor(checkpoint).use_flip(flip)
     crop = pr.crop
     ds = SynthDataset(dataset, crop=crop, augment=None, box_scale=1.2)
     if list(ds.keypoint_names) != list(pr.body.keypoint_names):

@@ -61,10 +61,7 @@ def predict(checkpoint: str | Path, image_path: str | Path, out: str | Path, box
         raise ValueError(f"--focal must be positive, got {focal}")
     f = float(focal or max(w, h))
     k = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
-    pr = load_predictor(checkpoint)
-    if flip and pr.task != "hmr_blsm":
-        raise ValueError(f"{pr.path}: --flip averages HMR-BLSM parameters; this is a {pr.task!r} checkpoint")
-    pr.flip = flip
+    pr = load_predictor(checkpoint).use_flip(flip)
     crop = pr.crop
     a = crop_affine(centre, side, crop)
     img = warp_to_crop(torch.from_numpy(image).permute(2, 0, 1).float() / 255.0, a, crop)

@@ -80,6 +80,13 @@ class Predictor:
             self.regressor = self.regressor.to(device)
         return self
 
+    def use_flip(self, flip: bool) -> Predictor:
+        """Switch flip test-time augmentation (:func:`recovery.models.hmr.flip_average`); HMR-BLSM only."""
+        if flip and self.task != "hmr_blsm":
+            raise ValueError(f"{self.path}: --flip averages HMR-BLSM parameters; this is a {self.task!r} checkpoint")
+        self.flip = flip
+        return self
+
     def _pelvis(self) -> int:
         return self.body.keypoint_names.index("pelvis")
 
