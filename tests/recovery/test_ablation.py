@@ -59,7 +59,9 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
     assert set(saved["configs"]) == set(CONFIGS)
     for c in saved["configs"].values():
         assert {"joint_mm", "vertex_mm", "pa_joint_mm"} <= set(c) and c["vertex_mm"] > 0
-    assert {"vertex_mm", "pca_vertex_mm"} <= set(saved["autoencoder"]) and saved["autoencoder"]["test_meshes"] == 8
+    ae = saved["autoencoder"]
+    assert {"vertex_mm", "pca_vertex_mm", "prior_vertex_mm", "prior_pca_vertex_mm"} <= set(ae) and ae["test_meshes"] == 8
+    assert ae["pca_by_components"]["4"][0] == pytest.approx(ae["pca_vertex_mm"])  # the full model's point of the curve
     for png in ("recovery_ablation_C_vs_A.png", "recovery_ablation_E_vs_B.png", "recovery_ablation_roughness.png"):
         assert (tmp_path / "docs" / png).stat().st_size > 1000
     assert "does not hold" in (tmp_path / "docs" / "recovery_ablation.md").read_text() or "holds" in (tmp_path / "docs" / "recovery_ablation.md").read_text()
