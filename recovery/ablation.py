@@ -287,7 +287,7 @@ def run_ablation(config_dir: str | Path, test: str | Path, out: str | Path, docs
     with atomic_write(docs / "recovery_ablation.json", "w") as fh:
         fh.write(json.dumps(result, indent=1))
     with atomic_write(docs / "recovery_ablation.md", "w") as fh:
-        fh.write(report_markdown(result, config_dir, out))
+        fh.write(report_markdown(result, config_dir, out, docs))
     return result
 
 
@@ -306,7 +306,9 @@ def claims(result: dict[str, Any]) -> list[tuple[str, bool, str]]:
     return out
 
 
-def report_markdown(result: dict[str, Any], config_dir: Path, out: Path) -> str:
+def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: Path = Path("docs")) -> str:
+    """The report; ``docs/recovery_ablation_gpu.json`` (a GPU run) and ``docs/recovery_ablation_notes.md``
+    (measured discussion) are included when present."""
     c, ae = result["configs"], result["autoencoder"]
     lines = [
         "# Thesis Table 4.3 on our data: HMR-BLSM, parameter regression and the spiral mesh decoder",
@@ -334,11 +336,31 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path) -> str:
     lines += ["", "## Autoencoder against PCA", "",
               f"Held-out meshes ({ae['test_meshes']}: {ae['test_split']['people']} people never trained on, "
               f"{ae['test_split']['poses']}): autoencoder (latent {ae['latent']}, {ae['parameters']:,} parameters, "
-              f"{ae['steps']} steps of {ae['batch_size']}) **{ae['vertex_mm']:.2f} mm** mean vertex error "
+              f"{ae['steps']} steps of {ae['batch_size']}, {ae.get('train_minutes', 0):.0f} min) **{ae['vertex_mm']:.2f} mm** mean vertex error "
               f"(median {ae['vertex_mm_median']:.2f}); PCA with {ae['pca_components']} components fitted on "
               f"{ae['pca_train_meshes']} training meshes **{ae['pca_vertex_mm']:.2f} mm** (median {ae['pca_vertex_mm_median']:.2f}). "
-              f"On training meshes: {ae['train_vertex_mm']:.2f} vs {ae['train_pca_vertex_mm']:.2f} mm.", "",
-              "Figures: `recovery_ablation_C_vs_A.png` (Fig. 4.5), `recovery_ablation_E_vs_B.png` (Fig. 4.6), "
+              f"The same people in {ae['test_meshes']} pose-prior draws (the prior's whole range, harder than the two clips): "
+              f"autoencoder {ae['prior_vertex_mm']:.2f} mm, PCA {ae['prior_pca_vertex_mm']:.2f} mm. "
+              f"On training meshes: {ae['train_vertex_mm']:.2f} vs {ae['train_pca_vertex_mm']:.2f} mm. "
+              f"Every test mesh replaced by their mean: {ae['test_mean_mesh_mm']:.1f} mm.", "",
+              f"- autoencoder at most PCA's error (held-out clips): **{'holds' if ae['vertex_mm'] <= ae['pca_vertex_mm'] else 'does not hold'}**",
+              "", "PCA's held-out error by the number of components (mm; held-out clips / prior poses):", "",
+              "| components | " + " | ".join(ae["pca_by_components"]) + " |",
+              "|---|" + "---|" * len(ae["pca_by_components"]),
+              "| clips | " + " | ".join(f"{v[0]:.2f}" for v in ae["pca_by_components"].values()) + " |",
+              "| prior | " + " | ".join(f"{v[1]:.2f}" for v in ae["pca_by_components"].values()) + " |", ""]
+    gpu = docs / "recovery_ablation_gpu.json"
+    if gpu.is_file():
+        g = json.loads(gpu.read_text())
+        curve = ", ".join(f"{v} mm at step {k}" for k, v in g["val_vertex_mm"].items())
+        lines += ["## On a GPU", "",
+                  f"`{g['command']}` ({g['config']}: batch {g['batch_size']}, {g['planned_steps']} steps planned) on "
+                  f"{g['device']}: {g['steps_reached']} steps in {g['train_seconds']:.0f} s ({g['meshes_per_second']:.0f} meshes/s); "
+                  f"validation ({g['val_split']}): {curve}. Status: {g['status']}.", ""]
+    notes = docs / "recovery_ablation_notes.md"
+    if notes.is_file():
+        lines += [notes.read_text().rstrip(), ""]
+    lines += ["Figures: `recovery_ablation_C_vs_A.png` (Fig. 4.5), `recovery_ablation_E_vs_B.png` (Fig. 4.6), "
               "`recovery_ablation_roughness.png` (every config's meshes of the same people, faces coloured by the "
               "uniform Laplacian's length).", ""]
     return "\n".join(lines)
