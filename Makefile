@@ -84,8 +84,9 @@ recovery-data-before: $(STAMP)
 	for s in test val train_hdri train_sky train_mocap; do \
 		$(BIN)/synth generate configs/synth/$$s.yaml --out out/data_before/$$s --workers 2 --resume $(BEFORE_REALISM) || exit 1; done
 
-# The packaged HMR-BLSM (docs/recovery.md): train (about 55 minutes on 2 cores; an interrupted run
-# continues), evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
+# The packaged HMR-BLSM (docs/recovery.md): train (9000 steps, about 143 minutes on 2 cores measured
+# on 2026-11-26; an interrupted run continues),
+# evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
 recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume
 	$(BIN)/recovery evaluate out/runs/hmr_blsm_lite0/best.pt out/data/test --out out/eval/hmr_blsm_lite0

@@ -29,10 +29,12 @@ from recovery.models.mesh_ae import MeshAutoencoder  # noqa: E402
 from recovery.models.spiral import spiral_conv, spiral_gather  # noqa: E402
 
 
-def rate(fn, n: int, items: int) -> float:
+def rate(fn, n: int, items: int, sync=lambda: None) -> float:
+    sync()
     t = time.perf_counter()
     for _ in range(n):
         fn()
+    sync()
     return items * n / (time.perf_counter() - t)
 
 
@@ -42,20 +44,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--device", default="cpu", help="cpu (the make bench section) or cuda (a 'mesh_gpu' section)")
     args = ap.parse_args(argv)
+    dev = torch.device(args.device)
     torch.set_num_threads(2)
     torch.manual_seed(0)
-    body = blsm.load()
+    body = blsm.load().to(dev)
     ops = mesh_operators()
     nv = body.num_vertices
-    ae = MeshAutoencoder(ops, torch.zeros(nv, 3), torch.ones(nv, 3))
+    ae = MeshAutoencoder(ops, torch.zeros(nv, 3), torch.ones(nv, 3)).to(dev)
     opt = torch.optim.Adam(ae.parameters(), 1e-4)
     b = args.batch
-    x = torch.randn(b, nv, 3)
-    z = torch.randn(b, 128)
-    pose = torch.randn(b, body.num_dofs)
+    x = torch.randn(b, nv, 3, device=dev)
+    z = torch.randn(b, 128, device=dev)
+    pose = torch.randn(b, body.num_dofs, device=dev)
     bone = body.population_bone[:b].float()
     shape = body.population_shape[:b].float()
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
 
     def train_step() -> None:
         loss = (ae(x) - x).abs().mean()
@@ -72,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             body(pose=pose, bone=bone, shape=shape)
 
     conv = ae.encoder.convs[0]  # level 0, 16 -> 16 channels, 2 rings
-    feat = torch.randn(b, nv, 16, requires_grad=True)
+    feat = torch.randn(b, nv, 16, device=dev, requires_grad=True)
     feat_vm = feat.detach().transpose(0, 1).contiguous().requires_grad_(True)
 
     def conv_vertex_major() -> None:
@@ -90,10 +95,12 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, list[float]] = {k: [] for k in conds}
     for _ in range(args.rounds):
         for k, fn in conds.items():
-            res[k].append(rate(fn, args.steps, b))
+            res[k].append(rate(fn, args.steps, b, sync))
     med = {k: sorted(v)[len(v) // 2] for k, v in res.items()}
+    where = (f"GPU: {torch.cuda.get_device_name(dev)}" if dev.type == "cuda"
+             else f"Machine: {platform.processor() or platform.machine()}, 2 threads")
     lines = [
-        f"Machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, 2 threads; batch {b}; "
+        f"{where}, torch {torch.__version__}; batch {b}; "
         f"template {nv} vertices, levels {ops.sizes}; median of {args.rounds} rounds of {args.steps} calls.",
         "",
         "| | meshes / s | ratio |",
@@ -104,7 +111,12 @@ def main(argv: list[str] | None = None) -> int:
         f"| level-0 SpiralConv forward + backward, vertex-major (used) | {med['vm']:.1f} | **{med['vm'] / med['bm']:.2f}** of batch-major |",
         f"| the same, batch-major gather (reference) | {med['bm']:.1f} | 1.00 |",
     ]
-    write_section(Path(args.out), "mesh", "Spiral mesh networks (CPU)", "benchmarks/bench_mesh.py", lines)
+    if dev.type == "cuda":
+        write_section(Path(args.out), "mesh_gpu", "Spiral mesh networks (GPU)", "benchmarks/bench_mesh.py", lines,
+                      command=f"`python benchmarks/bench_mesh.py --device cuda --batch {b} --steps {args.steps} "
+                              f"--rounds {args.rounds}` on a lent GPU (not part of `make bench`, which needs none)")
+    else:
+        write_section(Path(args.out), "mesh", "Spiral mesh networks (CPU)", "benchmarks/bench_mesh.py", lines)
     print("\n".join(lines))
     return 0
 

@@ -6,7 +6,9 @@ The real loader is what ``recovery train`` uses: the pre-cropped cache (memory-m
 transforms) in ``workers`` DataLoader processes. The in-memory condition feeds the same number of
 steps from batches augmented beforehand and held in memory, so only the network's step is timed.
 The two conditions alternate in rounds so that machine load affects both alike; the ratio is real
-loader / in-memory images per second (target >= 0.9).
+loader / in-memory images per second (target >= 0.9). A third condition times the same in-memory
+batches with the backbone's weights and images in the default contiguous (NCHW) memory format
+(``train.channels_last: false``) against channels-last, the trainer's default.
 
     python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
 """
@@ -65,14 +67,21 @@ def main(argv: list[str] | None = None) -> int:
             task.training_step(next(source), 0)
         return args.steps * args.batch / (time.perf_counter() - t0)
 
-    real, mem = [], []
+    backbone = task.model.backbone
+    real, mem, nchw = [], [], []
     for r in range(args.rounds):
         loader = make_loader(args.steps * (r + 1) * args.batch)
         next(loader)  # workers started and the queue filled, as in a run's steady state
         real.append(timed(loader))
         mem.append(timed(iter(memory * 2)))
-        print(f"[bench] round {r + 1}: real loader {real[-1]:.1f} img/s, in memory {mem[-1]:.1f} img/s")
-    real_ips, mem_ips = sorted(real)[len(real) // 2], sorted(mem)[len(mem) // 2]
+        backbone.use_channels_last(False)  # train.channels_last: false, same batches
+        task.training_step(memory[0], 0)
+        nchw.append(timed(iter(memory * 2)))
+        backbone.use_channels_last(True)
+        print(f"[bench] round {r + 1}: real loader {real[-1]:.1f} img/s, in memory {mem[-1]:.1f} img/s, "
+              f"in memory with contiguous (NCHW) weights {nchw[-1]:.1f} img/s")
+    med = lambda xs: sorted(xs)[len(xs) // 2]  # noqa: E731
+    real_ips, mem_ips, nchw_ips = med(real), med(mem), med(nchw)
 
     model, body = task.model.eval(), task.body
     images = torch.rand(args.batch, 3, args.crop, args.crop)
@@ -96,10 +105,13 @@ def main(argv: list[str] | None = None) -> int:
         "| | images / s | ratio |",
         "| --- | ---: | ---: |",
         f"| training, in-memory batches | {mem_ips:.1f} | |",
+        f"| training, in-memory batches, `train.channels_last: false` | {nchw_ips:.1f} | "
+        f"channels-last **{mem_ips / nchw_ips:.2f}x** |",
         f"| training, real loader (cache + BatchAugment, {args.workers} worker) | {real_ips:.1f} | **{real_ips / mem_ips:.2f}** (target >= 0.9) |",
         f"| inference (network + BLSM, no grad) | {infer:.1f} | |",
         "",
-        f"Rounds: real {', '.join(f'{x:.1f}' for x in real)}; in memory {', '.join(f'{x:.1f}' for x in mem)}.",
+        f"Rounds: real {', '.join(f'{x:.1f}' for x in real)}; in memory {', '.join(f'{x:.1f}' for x in mem)}; "
+        f"in memory, contiguous weights {', '.join(f'{x:.1f}' for x in nchw)}.",
     ]
     write_section(Path(args.out), "recovery", "HMR-BLSM training and inference throughput (CPU)",
                   "benchmarks/bench_recovery.py", lines)

@@ -129,7 +129,7 @@ def _inside(args: argparse.Namespace) -> None:
         f"Ray {', '.join(f'{t:.1f}' for t in times['ray'])}. Start-up, to the first image (median): local "
         f"{statistics.median(firsts['local']):.1f} s, Ray {statistics.median(firsts['ray']):.1f} s (Ray's worker "
         f"processes boot Ray before importing the generator); after it, local {steady['local']:.2f} and Ray "
-        f"{steady['ray']:.2f} images/s (ratio {steady['local'] and steady['ray'] / steady['local']:.2f}).",
+        f"{steady['ray']:.2f} images/s (ratio {steady['ray'] / steady['local']:.2f}).",
         f"Per-task overhead: an empty task's round trip {trip_ms:.1f} ms; (Ray - local) / shards = {per_task:+.0f} ms "
         f"per shard of {args.shard_size} images, start-up included.",
     ]

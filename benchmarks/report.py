@@ -16,11 +16,12 @@ HEADER = [
 ]
 
 
-def write_section(path: Path, name: str, title: str, script: str, lines: list[str]) -> None:
+def write_section(path: Path, name: str, title: str, script: str, lines: list[str], command: str | None = None) -> None:
     """Replace (or append) section ``name``: a ``## title`` heading, the command that made it
-    (``make bench`` running ``script``), then ``lines``."""
+    (``make bench`` running ``script``, or ``command`` for a run outside ``make bench``), then ``lines``."""
     begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
-    head = [f"## {title}", "", f"Command: `make bench` (runs `python {script} --out {path}`).", ""]
+    made = command or f"`make bench` (runs `python {script} --out {path}`)"
+    head = [f"## {title}", "", f"Command: {made}.", ""]
     block = "\n".join([begin, *head, *lines, end])
     text = path.read_text() if path.exists() else "\n".join(HEADER) + "\n"
     if begin in text and end in text:

@@ -11,8 +11,8 @@ import sys
 
 USAGE = """\
 recovery train CONFIG --out DIR [--resume]        train (configs/recovery/*.yaml; '-' = defaults)
-recovery evaluate CHECKPOINT DATASET --out DIR    metrics.json, sheet.png (CHECKPOINT may be 'default')
-recovery predict CHECKPOINT IMAGE --out DIR [--box X0 Y0 X1 Y1] [--focal F]
+recovery evaluate CHECKPOINT DATASET --out DIR [--flip]    metrics.json, sheet.png (CHECKPOINT may be 'default')
+recovery predict CHECKPOINT IMAGE --out DIR [--box X0 Y0 X1 Y1] [--focal F] [--flip]
 recovery cache DATASET --out DIR [--crop N]       pre-crop a dataset for training (train does it itself)
 recovery export CHECKPOINT --out FILE [--full]    inference-only copy (float16 unless --full)
 """
@@ -32,12 +32,14 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--out", required=True)
     e.add_argument("--max-people", type=int, default=0, help="at most N people, spread over the set (0: all)")
     e.add_argument("--batch", type=int, default=32)
+    e.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation (average with the mirrored crop)")
     pr = sub.add_parser("predict")
     pr.add_argument("checkpoint")
     pr.add_argument("image")
     pr.add_argument("--out", required=True)
     pr.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"))
     pr.add_argument("--focal", type=float, help="focal length in pixels (default: the image's longer side)")
+    pr.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
     c = sub.add_parser("cache")
     c.add_argument("dataset")
     c.add_argument("--out", required=True)
@@ -88,14 +90,14 @@ def _run(args: argparse.Namespace) -> int:
 
         if args.max_people < 0 or args.batch < 1:
             raise ValueError("--max-people must be >= 0 and --batch >= 1")
-        res = evaluate(args.checkpoint, args.dataset, args.out, batch=args.batch, max_people=args.max_people)
+        res = evaluate(args.checkpoint, args.dataset, args.out, batch=args.batch, max_people=args.max_people, flip=args.flip)
         print(format_report(res))
         print(f"wrote {args.out}/metrics.json and {args.out}/sheet.png")
         return 0
     if args.cmd == "predict":
         from recovery.predict import predict
 
-        predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal)
+        predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal, flip=args.flip)
         print(f"wrote {args.out}/params.json, mesh.obj, overlay.png")
         return 0
     if args.cmd == "cache":

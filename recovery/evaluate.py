@@ -136,10 +136,14 @@ def _summary(rows: dict[str, np.ndarray], conf: np.ndarray, sel: np.ndarray) -> 
 
 
 def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch: int = 32, max_people: int = 0,
-             log: Any = print) -> dict[str, Any]:
-    """Evaluate a checkpoint on a dataset folder; writes ``metrics.json`` and ``sheet.png`` into ``out``."""
+             log: Any = print, flip: bool = False) -> dict[str, Any]:
+    """Evaluate a checkpoint on a dataset folder; writes ``metrics.json`` and ``sheet.png`` into ``out``.
+
+    ``flip``: HMR-BLSM with flip test-time augmentation (:func:`recovery.models.hmr.flip_average`);
+    recorded as ``flip_test`` in the metrics.
+    """
     t0 = time.perf_counter()
-    pr = load_predictor(checkpoint)
+    pr = load_predictor(checkpoint).use_flip(flip)
     crop = pr.crop
     ds = SynthDataset(dataset, crop=crop, augment=None, box_scale=1.2)
     if list(ds.keypoint_names) != list(pr.body.keypoint_names):
@@ -219,7 +223,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     view, trunc, people = info["view"][chosen], info["truncated"][chosen], info["people"][chosen]
     all_sel = np.ones(len(chosen), bool)
     res: dict[str, Any] = {
-        "checkpoint": str(pr.path), "task": pr.task, "dataset": str(dataset), "crop": crop,
+        "checkpoint": str(pr.path), "task": pr.task, "dataset": str(dataset), "crop": crop, "flip_test": flip,
         "joint_set": list(EVAL_JOINTS),
         **_summary(rows_np, conf, all_sel),
         "body_frame": {"joint_mm": float(rows_np["bf_joint_mm"].mean()), "pa_joint_mm": float(rows_np["bf_pa_joint_mm"].mean()),
@@ -295,7 +299,8 @@ def format_report(res: dict[str, Any]) -> str:
     b = res["baselines"]
     seg = res.get("segmentation", {})
     lines = [
-        f"{res['dataset']}: {res['people']} people ({res['subjects']} subjects), crop {res['crop']} px, checkpoint {res['checkpoint']}",
+        f"{res['dataset']}: {res['people']} people ({res['subjects']} subjects), crop {res['crop']} px, checkpoint {res['checkpoint']}"
+        + (", flip test" if res.get("flip_test") else ""),
         f"  MPJPE {res['mpjpe_mm']:.1f} mm  PA-MPJPE {res['pa_mpjpe_mm']:.1f} mm  PVE {res['pve_mm']:.1f} mm  "
         f"PCK@0.05 {res['pck_0.05']:.3f}  PCK@0.1 {res['pck_0.1']:.3f}",
         f"  segmentation: fg acc {seg.get('fg_accuracy', float('nan')):.3f} F1 {seg.get('fg_f1', float('nan')):.3f}; "

@@ -80,6 +80,7 @@ class HMRTask:
             raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
         self.crop = cfg.data.crop
         self.model = build_model(cfg, body, init)
+        self.model.backbone.use_channels_last(cfg.train.channels_last)
         self.net: nn.Module = self.model  # the training forward: the DDP wrapper with several processes
         self.world, self.rank = 1, 0
         o = cfg.optim

@@ -85,13 +85,17 @@ class MeshSource:
     """Draws (pose, bone, shape) of one split (module docstring).
 
     Args:
-        body: the BLSM model. cfg: the mesh data settings. split: "train", "val" or "test".
+        body: the BLSM model. cfg: the mesh data settings. split: "train", "val" or "test" (whose
+            people). poses: "split" (the split's poses, module docstring) or "prior" (pose-prior draws
+            only: the test people in the prior's whole range, harder than the held-out clips).
     """
 
-    def __init__(self, body: nn.Module, cfg: MeshDataConfig, split: str) -> None:
+    def __init__(self, body: nn.Module, cfg: MeshDataConfig, split: str, poses: str = "split") -> None:
         if split not in ("train", "val", "test"):
             raise ValueError(f"split must be train, val or test, got {split!r}")
-        self.body, self.cfg, self.split = body, cfg, split
+        if poses not in ("split", "prior"):
+            raise ValueError(f"poses must be split or prior, got {poses!r}")
+        self.body, self.cfg, self.split, self.poses = body, cfg, split, poses
         n = body.population_bone.shape[0]
         a, b = int(round(cfg.train * n)), int(round((cfg.train + cfg.val) * n))
         self.people = {"train": torch.arange(0, a), "val": torch.arange(a, b), "test": torch.arange(b, n)}[split]
@@ -99,13 +103,13 @@ class MeshSource:
             raise ValueError(f"the {split} split of {n} population members is empty")
         self.library: torch.Tensor | None = None
         self.prior = None
-        if split == "test":
+        if split == "test" and poses == "split":
             self.library = _library_poses(cfg.test_library, (), keep_only=cfg.exclude_clips)
         else:
             from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
 
             self.prior = load_prior(DEFAULT_PRIOR)
-            if split == "train" and cfg.library and cfg.library_share > 0:
+            if split == "train" and poses == "split" and cfg.library and cfg.library_share > 0:
                 self.library = _library_poses(cfg.library, cfg.exclude_clips)
 
     def sample(self, n: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
@@ -165,11 +169,28 @@ class PCAModel:
 
     @classmethod
     def fit(cls, meshes: torch.Tensor, k: int) -> PCAModel:
+        """The top-``k`` principal directions of ``meshes`` (N, V, 3), in order of variance.
+
+        With fewer meshes than coordinates (N < 3V) the right singular vectors come from the N x N
+        Gram matrix: ``X X^T = U S^2 U^T``, ``V_k^T = S_k^-1 U_k^T X`` (float64; exact up to rounding
+        for the kept directions, and about N/3V the cost of the full SVD).
+        """
         x = meshes.reshape(len(meshes), -1).double()
         mean = x.mean(0)
-        # the top-k right singular vectors of the centred data (exact SVD of the Gram matrix side)
-        _, _, vt = torch.linalg.svd(x - mean, full_matrices=False)
-        return cls(mean=mean.float(), components=vt[:k].float())
+        x = x - mean
+        if k > min(x.shape):
+            raise ValueError(f"PCA with {k} components needs at least {k} meshes, got {len(meshes)}")
+        if x.shape[0] < x.shape[1]:
+            evals, u = torch.linalg.eigh(x @ x.T)  # ascending
+            evals, u = evals.flip(0)[:k], u.flip(1)[:, :k]
+            vt = (u.T @ x) / evals.clamp_min(1e-300).sqrt()[:, None]
+        else:
+            vt = torch.linalg.svd(x, full_matrices=False)[2][:k]
+        return cls(mean=mean.float(), components=vt.float())
+
+    def truncated(self, k: int) -> PCAModel:
+        """The same model with its first ``k`` components (PCA with ``k`` components of the same data)."""
+        return PCAModel(mean=self.mean, components=self.components[:k])
 
     def reconstruct(self, meshes: torch.Tensor) -> torch.Tensor:
         x = meshes.reshape(len(meshes), -1) - self.mean
@@ -183,5 +204,6 @@ def vertex_error_mm(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 def describe(source: MeshSource) -> dict[str, Any]:
     return {"split": source.split, "people": len(source.people),
-            "poses": "held-out clips " + ", ".join(source.cfg.exclude_clips) if source.split == "test"
+            "poses": "prior" if source.poses == "prior"
+            else "held-out clips " + ", ".join(source.cfg.exclude_clips) if source.split == "test"
             else ("prior" + (f" + library {source.cfg.library} ({source.cfg.library_share:.0%})" if source.library is not None else ""))}

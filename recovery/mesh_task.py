@@ -83,6 +83,7 @@ class MeshTask:
         self.model = MeshRegressor(cfg.model.backbone, ops, mean, std, cam_init,
                                    pretrained=cfg.model.pretrained if pretrained_backbone is None else pretrained_backbone,
                                    channels=tuple(m.channels), latent=m.latent, hidden=m.hidden)
+        self.model.backbone.use_channels_last(cfg.train.channels_last)
         if ae_state is not None:
             self.model.decoder.load_state_dict({k[len("decoder."):]: v for k, v in ae_state.items() if k.startswith("decoder.")})
         if m.freeze_decoder:

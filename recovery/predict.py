@@ -45,8 +45,9 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def predict(checkpoint: str | Path, image_path: str | Path, out: str | Path, box: tuple[float, ...] | None = None,
-            focal: float | None = None) -> dict[str, Any]:
-    """Predict one person (module docstring); returns the parameters written to ``params.json``."""
+            focal: float | None = None, flip: bool = False) -> dict[str, Any]:
+    """Predict one person (module docstring); returns the parameters written to ``params.json``.
+    ``flip``: HMR-BLSM with flip test-time augmentation (:func:`recovery.models.hmr.flip_average`)."""
     image = read_image(image_path)
     h, w = image.shape[:2]
     if box is not None:
@@ -60,7 +61,7 @@ def predict(checkpoint: str | Path, image_path: str | Path, out: str | Path, box
         raise ValueError(f"--focal must be positive, got {focal}")
     f = float(focal or max(w, h))
     k = np.array([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
-    pr = load_predictor(checkpoint)
+    pr = load_predictor(checkpoint).use_flip(flip)
     crop = pr.crop
     a = crop_affine(centre, side, crop)
     img = warp_to_crop(torch.from_numpy(image).permute(2, 0, 1).float() / 255.0, a, crop)

@@ -21,7 +21,7 @@ import blsm
 from blsm.io import sha256_file
 from recovery.config import RecoveryConfig, config_from_json
 from recovery.geometry import cam_to_translation, project
-from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, predict_body
+from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, flip_average, predict_body
 from recovery.trainer import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_checkpoint, save_atomic
 
 DEFAULT_CHECKPOINT = Path(__file__).parent / "data" / "hmr_blsm_default.pt"
@@ -63,6 +63,7 @@ class Predictor:
     path: Path
     info: dict[str, Any]
     regressor: torch.Tensor | None = None  # (K, V) keypoints from vertices (mesh network)
+    flip: bool = False  # HMR-BLSM: average with the mirrored prediction on the flipped crop
 
     @property
     def crop(self) -> int:
@@ -79,6 +80,13 @@ class Predictor:
             self.regressor = self.regressor.to(device)
         return self
 
+    def use_flip(self, flip: bool) -> Predictor:
+        """Switch flip test-time augmentation (:func:`recovery.models.hmr.flip_average`); HMR-BLSM only."""
+        if flip and self.task != "hmr_blsm":
+            raise ValueError(f"{self.path}: --flip averages HMR-BLSM parameters; this is a {self.task!r} checkpoint")
+        self.flip = flip
+        return self
+
     def _pelvis(self) -> int:
         return self.body.keypoint_names.index("pelvis")
 
@@ -87,8 +95,11 @@ class Predictor:
         """(B, 3, crop, crop) RGB in [0, 1] and (B, 3, 3) ``K_crop`` -> :class:`Prediction`."""
         dev = next(self.model.parameters()).device
         k_crop = k_crop.to(dev)
-        out = self.model(images.to(dev))
+        images = images.to(dev)
+        out = self.model(images)
         if self.task == "hmr_blsm":
+            if self.flip:
+                out = flip_average(self.body, out, self.model(images.flip(-1)))
             b = predict_body(self.body, out, k_crop, self.crop)
             rest = self.body(pose=out.pose, bone=out.bone, shape=out.shape)
             return Prediction(vertices=b.vertices, keypoints_3d=b.keypoints_3d, transl=b.transl,
@@ -164,6 +175,7 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
         model.load_state_dict(state)
     except RuntimeError as exc:
         raise ValueError(f"{path}: weights do not fit the network of its config ({str(exc).splitlines()[0][:160]})") from None
+    model.backbone.use_channels_last(cfg.train.channels_last)
     model.eval()
     info = {k: ck.get(k) for k in ("step", "saved", "best", "train_summary")}
     return Predictor(model=model, body=body, config=cfg, path=path, info=info, regressor=regressor)

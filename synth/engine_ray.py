@@ -201,7 +201,7 @@ def run_ray(
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
     worker.log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
-           f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
+               f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
     task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
                                            retry_exceptions=False)
     # The counter lives on the driver's node: it must outlive any node that leaves.
@@ -251,15 +251,15 @@ def run_ray(
         retried = ray.get(counter.retried.remote())
         if retried:
             worker.log(f"{len(retried)} shards made again after their worker or node was lost: "
-                     + ", ".join(shard_name(x) for x in retried))
+                       + ", ".join(shard_name(x) for x in retried))
     finally:
         for ref in waiting:
             ray.cancel(ref, force=True)
         ray.kill(counter)
         _remove_dead_temporaries(out, done)
-        writer.write_manifest(done, skipped)  # what is finished, also when the run stops
+        man = writer.write_manifest(done, skipped)  # what is finished, also when the run stops
     meter.close()
-    return writer.manifest(dict(sorted(done.items())), skipped)  # as just written
+    return man
 
 
 def _remove_dead_temporaries(out: Path, done: dict[str, Any]) -> None:

@@ -199,6 +199,37 @@ def predict_body(body: nn.Module, pred: HMROutput, k_crop: torch.Tensor, crop: i
     return body_outputs(body, pred.pose, pred.orient, pred.bone, pred.shape, transl, k_crop, keypoints)
 
 
+MIRROR_X = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
+"""The horizontal image flip in the camera frame (x -> -x)."""
+
+
+def unflip_output(body: nn.Module, out: HMROutput) -> HMROutput:
+    """A prediction on a horizontally flipped crop, mirrored back to the crop itself.
+
+    The inverse of what :class:`recovery.data.BatchAugment` does to the labels of a flipped crop:
+    the 47 atoms mirrored with the model's ``dof_mirror`` (valid for the unconstrained x), the
+    camera-frame orientation conjugated by ``diag(-1, 1, 1)``, ``tx`` negated (``u -> S - u`` in
+    the crop; ``K_crop`` is that of the unflipped crop); bone and shape coefficients are the
+    same for the mirror image (the augmentation keeps them). ``thetas`` are left as predicted.
+    """
+    m = MIRROR_X.to(out.orient)
+    cam = out.cam * out.cam.new_tensor([1.0, -1.0, 1.0])
+    return HMROutput(pose=body.mirror_pose(out.pose), orient=m @ out.orient @ m, bone=out.bone, shape=out.shape,
+                     cam=cam, thetas=out.thetas)
+
+
+def flip_average(body: nn.Module, out: HMROutput, flipped: HMROutput) -> HMROutput:
+    """Flip test-time augmentation: the mean of a prediction and of the prediction on the
+    horizontally flipped crop mirrored back (:func:`unflip_output`), the orientations averaged
+    as rotation matrices and projected onto SO(3) (SVD). ``thetas`` are the unflipped pass's."""
+    back = unflip_output(body, flipped)
+    u, _, vt = torch.linalg.svd(0.5 * (out.orient + back.orient))
+    d = torch.linalg.det(u @ vt)
+    fix = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    return HMROutput(pose=0.5 * (out.pose + back.pose), orient=u @ fix @ vt, bone=0.5 * (out.bone + back.bone),
+                     shape=0.5 * (out.shape + back.shape), cam=0.5 * (out.cam + back.cam), thetas=out.thetas)
+
+
 UPRIGHT_FACING_CAMERA = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
 """The body's rest frame (Y up, facing +Z) seen upright and facing an OpenCV camera (y down, z
 forward): a half turn about x, as HMR's mean global rotation."""

@@ -265,3 +265,31 @@ def test_resnet_normalisation_is_imagenet():
     assert model.input_mean == IMAGENET_MEAN
     x = torch.full((1, 3, 4, 4), 0.485)
     assert torch.allclose(model.normalize(x)[0, 0], torch.zeros(4, 4))
+
+
+@pytest.mark.parametrize("name", ["resnet18", "efficientnet_lite0"])
+def test_channels_last_gives_the_same_features_gradients_and_state(name):
+    torch.manual_seed(0)
+    ref = build_backbone(name).eval()
+    net = build_backbone(name).eval()
+    net.load_state_dict(ref.state_dict())
+    assert net.use_channels_last() is net and net.channels_last
+    conv = next(p for p in net.parameters() if p.ndim == 4)
+    assert conv.is_contiguous(memory_format=torch.channels_last) and not conv.is_contiguous()
+    x = torch.rand(2, 3, 64, 64)
+    a, b = ref(x), net(x)
+    torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5)
+    a.square().sum().backward()
+    b.square().sum().backward()
+    ga = dict(ref.named_parameters())
+    for k, p in net.named_parameters():  # float sums in another order: compare to the largest entry
+        scale = float(ga[k].grad.abs().max())
+        torch.testing.assert_close(p.grad, ga[k].grad, rtol=0, atol=1e-4 * scale + 1e-12, msg=k)
+    # State dicts keep shapes and load both ways (checkpoints do not depend on the format).
+    state = net.state_dict()
+    assert all(state[k].shape == v.shape for k, v in ref.state_dict().items())
+    fresh = build_backbone(name).eval()
+    fresh.load_state_dict(state)
+    torch.testing.assert_close(fresh(x), a, rtol=1e-4, atol=1e-5)
+    net.use_channels_last(False)
+    assert conv.is_contiguous() and not net.channels_last

@@ -152,6 +152,41 @@ def test_flip_mirrors_everything(cache, raw, model):
     assert not torch.equal(aug.part_swap, torch.arange(len(aug.part_swap)))
 
 
+def test_flip_test_time_augmentation_undoes_the_augmentations_flip(cache, raw, model):
+    """recovery.models.hmr.unflip_output is the inverse of BatchAugment's flip on every regressed
+    parameter: the labels of a flipped crop, read as a prediction and mirrored back, are the
+    unflipped crop's (so the flip average of two such predictions is the plain one)."""
+    from recovery.geometry import translation_to_cam
+    from recovery.models.hmr import HMROutput, flip_average, unflip_output
+
+    aug = _augment(cache, model)
+    n = len(cache)
+    plain = aug.apply(raw, [TURN] * n)
+    flip = aug.apply(raw, [CropParams(rotation_deg=TURN.rotation_deg, scale=TURN.scale, shift=TURN.shift, flip=True)] * n)
+
+    def as_output(b):
+        cam = translation_to_cam(b["transl_cam"], b["K_crop"], CROP)
+        return HMROutput(pose=b["pose"], orient=b["global_orient"], bone=b["bone"], shape=b["shape"], cam=cam,
+                         thetas=torch.zeros(1, n, 1))
+
+    want, back = as_output(plain), unflip_output(model, as_output(flip))
+    assert not torch.allclose(as_output(flip).cam, want.cam, atol=1e-3)  # the flip changes tx
+    for k in ("pose", "orient", "bone", "shape", "cam"):
+        torch.testing.assert_close(getattr(back, k), getattr(want, k), atol=1e-4, rtol=0, msg=k)
+    avg = flip_average(model, want, as_output(flip))
+    for k in ("pose", "orient", "cam"):
+        torch.testing.assert_close(getattr(avg, k), getattr(want, k), atol=1e-4, rtol=0, msg=k)
+    # Two different predictions: the mean of the parameters, the orientation a rotation between.
+    other = HMROutput(pose=want.pose + 0.2, orient=want.orient @ axis_angle_to_rotation_matrix(torch.tensor([[0.0, 0.4, 0.0]])),
+                      bone=want.bone, shape=want.shape, cam=want.cam + 0.1, thetas=want.thetas)
+    flipped_other = unflip_output(model, other)  # unflip is an involution: this is other's flipped twin
+    avg = flip_average(model, want, flipped_other)
+    torch.testing.assert_close(avg.pose, want.pose + 0.1, atol=1e-5, rtol=0)
+    torch.testing.assert_close(avg.cam, want.cam + 0.05, atol=1e-5, rtol=0)
+    rel = want.orient.transpose(1, 2) @ avg.orient  # a 0.2 rad turn about y
+    torch.testing.assert_close(rel, axis_angle_to_rotation_matrix(torch.tensor([[0.0, 0.2, 0.0]])).expand_as(rel), atol=1e-5, rtol=0)
+
+
 def test_resumable_sampler_continues_the_same_order():
     n, seed = 9, 5
     whole = list(itertools.islice(iter(ResumableSampler(n, seed)), 40))
