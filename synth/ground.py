@@ -118,6 +118,31 @@ def env_backdrop(camera: Camera, env: np.ndarray, rotation: float, scale: float,
     return rad.mean(axis=2)
 
 
+_CDF_CACHE: list[tuple[np.ndarray, np.ndarray]] = []  # (env, its cdf), the last few environments
+
+
+def _env_cdf(env: np.ndarray) -> np.ndarray:
+    """The cumulative ``L cos(theta) sin(theta)`` of the upper hemisphere's texels (row-major),
+    normalised; kept for the last 8 environment arrays (a generator shows a few HDRIs again and
+    again, and never changes one in place)."""
+    for e, cdf in _CDF_CACHE:
+        if e is env:
+            return cdf
+    h = env.shape[0]
+    theta = np.arange(h) / (h - 1) * math.pi  # row i looks at theta_i (env_lookup)
+    rows = np.flatnonzero(np.cos(theta) > 0.0)  # the upper hemisphere; the rest weigh 0
+    lum = np.maximum(env[rows].astype(np.float64) @ _LUMA, 0.0)
+    weight = np.zeros(env.shape[:2])
+    weight[rows] = lum * (np.cos(theta[rows]) * np.sin(theta[rows]))[:, None]  # texel solid angle ~ sin(theta)
+    total = weight.sum()
+    if not total > 0:
+        raise ValueError("the environment has no light above the horizon")
+    cdf = np.cumsum(weight.ravel()) / total
+    _CDF_CACHE.append((env, cdf))
+    del _CDF_CACHE[:-8]
+    return cdf
+
+
 @dataclass
 class EnvSampler:
     """Directions drawn with density proportional to ``L(w) cos(theta)`` over the upper hemisphere
@@ -127,16 +152,8 @@ class EnvSampler:
     rotation: float
 
     def __post_init__(self) -> None:
-        h, w = self.env.shape[:2]
-        theta = np.arange(h) / (h - 1) * math.pi  # row i looks at theta_i (env_lookup)
-        cos_t = np.cos(theta)
-        lum = np.maximum(self.env.astype(np.float64) @ _LUMA, 0.0)
-        weight = lum * (np.clip(cos_t, 0.0, None) * np.sin(theta))[:, None]  # texel solid angle ~ sin(theta)
-        total = weight.sum()
-        if not total > 0:
-            raise ValueError("the environment has no light above the horizon")
-        self._cdf = np.cumsum(weight.ravel()) / total
-        self._shape = (h, w)
+        self._cdf = _env_cdf(self.env)
+        self._shape = self.env.shape[:2]
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, 3) unit world directions, all with y > 0."""
@@ -199,23 +216,25 @@ def shadow_ratio(
     ratio = np.ones(mask.shape, np.float64)
     if not mask.any():
         return ratio.astype(np.float32), mask
-    x = pts[mask]  # (P, 3)
-    p = len(x)
+    origins = pts[mask] + np.array([0.0, 1e-4, 0.0])  # (P, 3), just above the ground
+    p = len(origins)
     sampler = EnvSampler(env, rotation)
     if pool:
-        dirs = sampler.sample(pool, rng)[rng.integers(0, pool, size=(p, samples))]
+        dirs = sampler.sample(pool, rng).astype(np.float32)[rng.integers(0, pool, size=(p, samples))]
     else:
-        dirs = sampler.sample(p * samples, rng).reshape(p, samples, 3)
-    origins = np.repeat(x[:, None], samples, axis=1) + np.array([0.0, 1e-4, 0.0])
+        dirs = sampler.sample(p * samples, rng).astype(np.float32).reshape(p, samples, 3)
+    # A ray o + t d (t > 0) can meet the sphere only where disc >= 0 and its far root is ahead.
     c, r = people_sphere
     oc = origins - c
-    b = (oc * dirs).sum(-1)
-    disc = b * b - ((oc * oc).sum(-1) - r * r)
-    cand = (disc >= 0) & (-b + np.sqrt(np.maximum(disc, 0.0)) > 0)
-    blocked = np.zeros((p, samples), bool)
-    if cand.any():
-        blocked[cand] = ray_test(origins[cand], dirs[cand])
-    ratio[mask] = 1.0 - blocked.mean(axis=1)
+    b = np.einsum("psk,pk->ps", dirs, oc.astype(np.float32))
+    disc = b * b - ((oc * oc).sum(-1) - r * r).astype(np.float32)[:, None]
+    cand = (disc >= 0) & (np.sqrt(np.maximum(disc, 0.0)) > b)
+    pi, si = np.nonzero(cand)
+    blocked = np.zeros(p)
+    if len(pi):
+        hit = np.asarray(ray_test(origins[pi], dirs[pi, si].astype(np.float64)), bool)
+        blocked = np.bincount(pi[hit], minlength=p)
+    ratio[mask] = 1.0 - blocked / samples
     # Smooth the Monte Carlo noise over ground pixels only (normalised box filter).
     m = mask.astype(np.float64)
     num = uniform_filter(ratio * m, size=5, mode="nearest")

@@ -225,6 +225,7 @@ class PeopleRenderer:
         self._warm = False
         self._hair_inc = None
         self._textures: dict[int, np.ndarray] = {}  # the texture array each slot shows now
+        self._env: np.ndarray | None = None  # the environment array uploaded now
 
     def _hair_mesh(self, i: int) -> Any:
         from synth.hair import hair_faces, num_vertices
@@ -297,6 +298,7 @@ class PeopleRenderer:
         for _ in range(1 if self._warm else 2):
             if not self._warm:
                 self._textures.clear()  # both warm-up assignments upload everything
+                self._env = None
             self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair)
         self._warm = True
         sensors = self.scene.sensors()
@@ -346,7 +348,9 @@ class PeopleRenderer:
             p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).reshape(-1))
             p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals).reshape(-1))
             p[f"{key}.vertex_color"] = mi.Float(np.ascontiguousarray(colours, dtype=np.float32).reshape(-1))
-        p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
+        if self._env is not env:  # the same HDRI again: its texels and sampling tables are kept
+            p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
+            self._env = env
         p["env.scale"] = opaque(env_scale)
         c, s = math.cos(env_rotation), math.sin(env_rotation)
         rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
