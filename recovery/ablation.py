@@ -351,12 +351,20 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: P
               "| prior | " + " | ".join(f"{v[1]:.2f}" for v in ae["pca_by_components"].values()) + " |", ""]
     gpu = docs / "recovery_ablation_gpu.json"
     if gpu.is_file():
-        g = json.loads(gpu.read_text())
-        curve = ", ".join(f"{v} mm at step {k}" for k, v in g["val_vertex_mm"].items())
-        lines += ["## On a GPU", "",
-                  f"`{g['command']}` ({g['config']}: batch {g['batch_size']}, {g['planned_steps']} steps planned) on "
-                  f"{g['device']}: {g['steps_reached']} steps in {g['train_seconds']:.0f} s ({g['meshes_per_second']:.0f} meshes/s); "
-                  f"validation ({g['val_split']}): {curve}. Status: {g['status']}.", ""]
+        lines += ["## On a GPU", ""]
+        for g in json.loads(gpu.read_text())["runs"]:
+            curve = ", ".join(f"{v} mm at step {k}" for k, v in g["val_vertex_mm"].items())
+            text = (f"- Latent {g['latent']}: `{g['command']}` ({g['config']}: batch {g['batch_size']}, {g['planned_steps']} "
+                    f"steps planned) on {g['device']}: {g['steps_reached']} steps in {g['train_seconds']:.0f} s "
+                    f"({g['meshes_per_second']:.0f} meshes/s); validation ({g['val_split']}): {curve}. Status: {g['status']}.")
+            r = g.get("report")
+            if r:
+                text += (f" Held-out clips: autoencoder **{r['vertex_mm']:.2f} mm** (median {r['vertex_mm_median']:.2f}), "
+                         f"PCA-{r['pca_components']} **{r['pca_vertex_mm']:.2f} mm** (median {r['pca_vertex_mm_median']:.2f}); "
+                         f"prior poses {r['prior_vertex_mm']:.2f} vs {r['prior_pca_vertex_mm']:.2f} mm; training meshes "
+                         f"{r['train_vertex_mm']:.2f} vs {r['train_pca_vertex_mm']:.2f} mm.")
+            lines.append(text)
+        lines.append("")
     notes = docs / "recovery_ablation_notes.md"
     if notes.is_file():
         lines += [notes.read_text().rstrip(), ""]
