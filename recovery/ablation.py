@@ -277,7 +277,7 @@ def run_ablation(config_dir: str | Path, test: str | Path, out: str | Path, docs
             "roughness_mm": bf["roughness_mm"], "label_roughness_mm": bf["label_roughness_mm"],
             "camera_frame": {k: res[k] for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pck_0.05", "pck_0.1")},
             "segmentation": res.get("segmentation"), "people": res["people"],
-            "task": cfg.task, "steps": cfg.train.steps, "batch_size": cfg.train.batch_size,
+            "task": cfg.task, "steps": cfg.train.steps, "batch_size": cfg.train.batch_size, "lr": cfg.optim.lr,
             "train_minutes": seconds / 60, "thesis": THESIS[name],
         }
     people = _people(test, 6, load_config(config_dir / "A.yaml").data.crop)
@@ -328,8 +328,8 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: P
         lines.append(f"| {n} | {names[n]} | {r['joint_mm']:.1f} | {r['vertex_mm']:.1f} | {r['pa_joint_mm']:.1f} | "
                      f"{r['roughness_mm']:.2f} ({r['label_roughness_mm']:.2f}) | {r['camera_frame']['pa_mpjpe_mm']:.1f} | "
                      f"{r['train_minutes']:.0f} | {r['thesis']['joint_mm']:.2f} / {r['thesis']['vertex_mm']:.2f} |")
-    lines += ["", f"Budgets: every config {c['A']['steps']} steps of {c['A']['batch_size']} crops "
-              "(equal samples; the wall time differs and is listed).", "",
+    lines += ["", f"Budgets: every config {c['A']['steps']} steps of {c['A']['batch_size']} crops, generator Adam "
+              f"{c['A'].get('lr', 0):g} with a cosine schedule (equal samples; the wall time differs and is listed).", "",
               "## The thesis' claims", ""]
     for what, holds, nums in claims(result):
         lines.append(f"- {what}: **{'holds' if holds else 'does not hold'}** ({nums})")
