@@ -1,6 +1,7 @@
-"""The mesh autoencoder at a GPU budget against PCA-128 (docs/recovery_ablation.md, "On a GPU").
+"""The mesh autoencoder at a GPU budget against PCA with as many components as its code
+(docs/recovery_ablation.md, "On a GPU").
 
-Trains ``configs/recovery/ablation_gpu/autoencoder.yaml`` (CUDA when present) for at most
+Trains ``--config`` (default ``configs/recovery/ablation_gpu/autoencoder.yaml``; CUDA when present) for at most
 ``--limit`` seconds (then it stops as on Ctrl-C, with a checkpoint, and the report says at which
 step), and reports held-out vertex errors exactly as ``recovery ablation`` does for the CPU config
 (:func:`recovery.ablation.autoencoder_report`). Needs ``out/motions_train`` and ``out/motions_test``.

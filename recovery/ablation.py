@@ -277,7 +277,7 @@ def run_ablation(config_dir: str | Path, test: str | Path, out: str | Path, docs
             "roughness_mm": bf["roughness_mm"], "label_roughness_mm": bf["label_roughness_mm"],
             "camera_frame": {k: res[k] for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm", "pck_0.05", "pck_0.1")},
             "segmentation": res.get("segmentation"), "people": res["people"],
-            "task": cfg.task, "steps": cfg.train.steps, "batch_size": cfg.train.batch_size,
+            "task": cfg.task, "steps": cfg.train.steps, "batch_size": cfg.train.batch_size, "lr": cfg.optim.lr,
             "train_minutes": seconds / 60, "thesis": THESIS[name],
         }
     people = _people(test, 6, load_config(config_dir / "A.yaml").data.crop)
@@ -328,8 +328,8 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: P
         lines.append(f"| {n} | {names[n]} | {r['joint_mm']:.1f} | {r['vertex_mm']:.1f} | {r['pa_joint_mm']:.1f} | "
                      f"{r['roughness_mm']:.2f} ({r['label_roughness_mm']:.2f}) | {r['camera_frame']['pa_mpjpe_mm']:.1f} | "
                      f"{r['train_minutes']:.0f} | {r['thesis']['joint_mm']:.2f} / {r['thesis']['vertex_mm']:.2f} |")
-    lines += ["", f"Budgets: every config {c['A']['steps']} steps of {c['A']['batch_size']} crops "
-              "(equal samples; the wall time differs and is listed).", "",
+    lines += ["", f"Budgets: every config {c['A']['steps']} steps of {c['A']['batch_size']} crops, generator Adam "
+              f"{c['A'].get('lr', 0):g} with a cosine schedule (equal samples; the wall time differs and is listed).", "",
               "## The thesis' claims", ""]
     for what, holds, nums in claims(result):
         lines.append(f"- {what}: **{'holds' if holds else 'does not hold'}** ({nums})")
@@ -351,12 +351,20 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: P
               "| prior | " + " | ".join(f"{v[1]:.2f}" for v in ae["pca_by_components"].values()) + " |", ""]
     gpu = docs / "recovery_ablation_gpu.json"
     if gpu.is_file():
-        g = json.loads(gpu.read_text())
-        curve = ", ".join(f"{v} mm at step {k}" for k, v in g["val_vertex_mm"].items())
-        lines += ["## On a GPU", "",
-                  f"`{g['command']}` ({g['config']}: batch {g['batch_size']}, {g['planned_steps']} steps planned) on "
-                  f"{g['device']}: {g['steps_reached']} steps in {g['train_seconds']:.0f} s ({g['meshes_per_second']:.0f} meshes/s); "
-                  f"validation ({g['val_split']}): {curve}. Status: {g['status']}.", ""]
+        lines += ["## On a GPU", ""]
+        for g in json.loads(gpu.read_text())["runs"]:
+            curve = ", ".join(f"{v} mm at step {k}" for k, v in g["val_vertex_mm"].items())
+            text = (f"- Latent {g['latent']}: `{g['command']}` ({g['config']}: batch {g['batch_size']}, {g['planned_steps']} "
+                    f"steps planned) on {g['device']}: {g['steps_reached']} steps in {g['train_seconds']:.0f} s "
+                    f"({g['meshes_per_second']:.0f} meshes/s); validation ({g['val_split']}): {curve}. Status: {g['status']}.")
+            r = g.get("report")
+            if r:
+                text += (f" Held-out clips: autoencoder **{r['vertex_mm']:.2f} mm** (median {r['vertex_mm_median']:.2f}), "
+                         f"PCA-{r['pca_components']} **{r['pca_vertex_mm']:.2f} mm** (median {r['pca_vertex_mm_median']:.2f}); "
+                         f"prior poses {r['prior_vertex_mm']:.2f} vs {r['prior_pca_vertex_mm']:.2f} mm; training meshes "
+                         f"{r['train_vertex_mm']:.2f} vs {r['train_pca_vertex_mm']:.2f} mm.")
+            lines.append(text)
+        lines.append("")
     notes = docs / "recovery_ablation_notes.md"
     if notes.is_file():
         lines += [notes.read_text().rstrip(), ""]

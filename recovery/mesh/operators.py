@@ -67,6 +67,12 @@ class MeshOpsSettings:
     regressor_support: int = 128
 
     def __post_init__(self) -> None:
+        # one type per field, so that a config read back from a checkpoint (factors 4.0) keys the same cache as YAML's 4
+        object.__setattr__(self, "factors", tuple(float(f) for f in self.factors))
+        object.__setattr__(self, "rings", tuple(int(r) for r in self.rings))
+        object.__setattr__(self, "lengths", tuple(int(n) for n in self.lengths))
+        object.__setattr__(self, "regressor_samples", int(self.regressor_samples))
+        object.__setattr__(self, "regressor_support", int(self.regressor_support))
         if not (len(self.rings) == len(self.lengths) == len(self.factors)):
             raise ValueError("factors, rings and lengths need one entry per level")
         if min(self.rings) < 1 or min(self.lengths) < 1 or min(self.factors) <= 1:

@@ -69,7 +69,7 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
     gpu = {"command": "python benchmarks/gpu_autoencoder.py", "config": "x.yaml", "batch_size": 64, "planned_steps": 10,
            "device": "GPU", "steps_reached": 10, "train_seconds": 1.0, "meshes_per_second": 640.0,
            "val_vertex_mm": {"10": 9.5}, "val_split": "val", "status": "done"}
-    (tmp_path / "docs" / "recovery_ablation_gpu.json").write_text(json.dumps(gpu))
+    (tmp_path / "docs" / "recovery_ablation_gpu.json").write_text(json.dumps({"runs": [{**gpu, "latent": 8}]}))
     (tmp_path / "docs" / "recovery_ablation_notes.md").write_text("## Why\n\nmeasured notes")
     logs.clear()
     with one_thread():

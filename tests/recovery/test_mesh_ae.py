@@ -114,3 +114,13 @@ def test_operator_cache_is_keyed_by_the_model_file(tmp_path, model):
     surf = model.keypoint_joint.numpy() < 0
     np.testing.assert_allclose(kp[surf], out.keypoints[0].numpy()[surf], atol=1e-5)
     assert np.linalg.norm(kp[~surf] - out.keypoints[0].numpy()[~surf], axis=1).mean() < 0.02
+
+
+def test_operator_cache_key_does_not_depend_on_number_types():
+    """A checkpoint's config gives factors as floats (4.0), YAML as ints (4): the same operators, one cache."""
+    from recovery.mesh.operators import MeshOpsSettings, _key
+
+    a = MeshOpsSettings(factors=(4, 2, 2, 2), rings=(2, 1, 1, 1), lengths=(25, 9, 9, 9))
+    b = MeshOpsSettings(factors=(4.0, 2.0, 2.0, 2.0), rings=(2.0, 1, 1, 1), lengths=(25, 9, 9, 9.0))
+    assert a == b and _key("0" * 64, a) == _key("0" * 64, b)
+    assert _key("0" * 64, a) != _key("0" * 64, MeshOpsSettings(factors=(4, 2, 2, 3)))

@@ -42,12 +42,15 @@ def break_sample_5() -> None:
 
 
 def slow_samples() -> None:
-    """Ray worker setup hook: every sample takes 0.3 s longer."""
+    """Ray worker setup hook: every sample takes 0.3 s longer; each sample's start is logged as the
+    worker's pid to $START_LOG."""
     from synth import generate as gen
 
     make = gen.SampleMaker.make
 
     def slow(self, index, rng):
+        with open(os.environ["START_LOG"], "a") as fh:
+            fh.write(f"{os.getpid()}\n")
         time.sleep(0.3)
         return make(self, index, rng)
 
@@ -58,12 +61,11 @@ def hook_env(hook: str, work: Path) -> dict:
     """A runtime environment whose worker processes run ``hook`` at start-up."""
     return {"worker_process_setup_hook": hook,
             "env_vars": {"PYTHONPATH": f"{Path(__file__).parent}:{Path(__file__).parents[2]}",
-                         "BREAK_LOG": str(work / "attempts.txt")}}
+                         "BREAK_LOG": str(work / "attempts.txt"), "START_LOG": str(work / "starts.txt")}}
 
 
-def kill_workers_of(node) -> int:
-    """SIGKILL the worker processes of a ``ray.cluster_utils`` node (the children of its raylet);
-    return how many."""
+def workers_of(node) -> list[int]:
+    """The worker processes of a ``ray.cluster_utils`` node: the children of its raylet."""
     arg = f"--raylet_socket_name={node.raylet_socket_name}"
     raylets = []
     for pid in filter(str.isdigit, os.listdir("/proc")):
@@ -73,21 +75,33 @@ def kill_workers_of(node) -> int:
             continue
         if arg.encode() in cmd:
             raylets.append(int(pid))
-    killed = 0
+    children = []
     for raylet in raylets:
-        children = []
         for task in Path(f"/proc/{raylet}/task").glob("*"):
             try:
-                children += (task / "children").read_text().split()
+                children += [int(c) for c in (task / "children").read_text().split()]
             except OSError:  # a thread that ended meanwhile
                 continue
-        for child in children:
-            try:
-                os.kill(int(child), signal.SIGKILL)
-                killed += 1
-            except ProcessLookupError:
-                pass
+    return children
+
+
+def kill_workers_of(node) -> int:
+    """SIGKILL the worker processes of a ``ray.cluster_utils`` node; return how many."""
+    killed = 0
+    for child in workers_of(node):
+        try:
+            os.kill(child, signal.SIGKILL)
+            killed += 1
+        except ProcessLookupError:
+            pass
     return killed
+
+
+def started_samples(node, work: Path) -> int:
+    """How many samples the node's live workers have started (``slow_samples``' log)."""
+    log = work / "starts.txt"
+    pids = set(workers_of(node))
+    return sum(int(p) in pids for p in log.read_text().split()) if log.is_file() else 0
 
 
 def main() -> None:
@@ -123,7 +137,9 @@ def main() -> None:
     removed: dict = {}
 
     def remove_node(made: int) -> None:
-        if made >= 1 and not removed:  # at the driver's first look, about 0.5 s in: both nodes busy
+        # Once the victim's worker is inside a shard (its first sample started), about 0.5 s in
+        # on an idle machine; on a busy one its worker may start later than the head's images.
+        if not removed and started_samples(victim, work) >= 1:
             removed["at_image"] = made
             # Its worker processes die with it, mid-shard (left alone, a worker whose raylet died
             # can still finish its task and hand the result to the driver).
