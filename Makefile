@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-data-motions recovery-data-before recovery-model recovery-ablation clean-venv
+.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -78,11 +78,18 @@ recovery-data: recovery-data-motions
 # The same five datasets as the generator made them before the realism work (issue 18's 2 x 2 table,
 # docs/realism.md): every new option off, which gives the old generator's bytes. Into out/data_before.
 BEFORE_REALISM = --set 'subjects.age=[0, 90]' --set subjects.children=0 --set poses.plausible=false \
-	--set 'camera.height_m=[]' --set render.denoise=false --set ground.shadows=false --set hair.enabled=false
+	--set 'camera.height_m=[]' --set render.spp=16 --set render.sampler=independent --set ground.shadows=false --set hair.enabled=false
 recovery-data-before: $(STAMP)
 	$(MAKE) recovery-data-motions
 	for s in test val train_hdri train_sky train_mocap; do \
 		$(BIN)/synth generate configs/synth/$$s.yaml --out out/data_before/$$s --workers 2 --resume $(BEFORE_REALISM) || exit 1; done
+
+# The same five datasets with the realism defaults, into out/data_after (the table's "after" data,
+# apart from out/data, which may hold datasets made before the realism work).
+recovery-data-after: $(STAMP)
+	$(MAKE) recovery-data-motions
+	for s in test val train_hdri train_sky train_mocap; do \
+		$(BIN)/synth generate configs/synth/$$s.yaml --out out/data_after/$$s --workers 2 --resume || exit 1; done
 
 # The packaged HMR-BLSM (docs/recovery.md): train (9000 steps, about 143 minutes on 2 cores measured
 # on 2026-11-26; an interrupted run continues),

@@ -62,9 +62,9 @@ def test_bad_configs_are_one_line_errors_naming_file_and_key(tmp_path, text, mes
 
 def test_overrides_set_dotted_keys_as_yaml_values(tmp_path):
     p = tmp_path / "c.yaml"
-    p.write_text("render: {spp: 32}\n")
-    cfg = load_config(p, ["hair.enabled=false", "render.denoise=false", "subjects.age=[0, 90]", "camera.height_m=[]"])
-    assert cfg.render.spp == 32 and not cfg.render.denoise and not cfg.hair.enabled
+    p.write_text("render: {spp: 49}\n")
+    cfg = load_config(p, ["hair.enabled=false", "render.denoise=true", "subjects.age=[0, 90]", "camera.height_m=[]"])
+    assert cfg.render.spp == 49 and cfg.render.denoise and not cfg.hair.enabled
     assert cfg.subjects.age == (0.0, 90.0) and cfg.camera.height_m == ()
     assert load_config("-", ["num=5"]).num == 5
 
@@ -81,7 +81,7 @@ def test_overrides_set_dotted_keys_as_yaml_values(tmp_path):
 )
 def test_bad_overrides_are_one_line_errors(tmp_path, override, message):
     p = tmp_path / "c.yaml"
-    p.write_text("render: {spp: 32}\n")
+    p.write_text("render: {spp: 49}\n")
     with pytest.raises(ValueError) as exc:
         load_config(p, [override])
     assert message in str(exc.value) and str(p) in str(exc.value) and "\n" not in str(exc.value)
@@ -94,3 +94,22 @@ def test_default_yaml_writes_out_the_embedded_defaults():
 
     root = Path(__file__).resolve().parents[2]
     assert load_config(root / "configs" / "synth" / "default.yaml") == GeneratorConfig()
+
+
+def test_sampler_spp_rules_are_mitsubas_and_a_rounded_spp_is_a_one_line_error(tmp_path):
+    import mitsuba as mi
+
+    from synth.config import SAMPLERS, RenderConfig, sampler_spp
+
+    mi.set_variant("scalar_rgb")
+    for sampler in SAMPLERS:
+        for n in range(1, 70):
+            assert sampler_spp(sampler, n) == mi.load_dict({"type": sampler, "sample_count": n}).sample_count(), (sampler, n)
+    assert RenderConfig(sampler="ldsampler", spp=64).spp == 64
+    with pytest.raises(ValueError, match=r"render.spp 36 with render.sampler ldsampler: Mitsuba would render 64 .*power of 4"):
+        RenderConfig(sampler="ldsampler", spp=36)
+    p = tmp_path / "c.yaml"
+    p.write_text("render: {spp: 32}\n")  # the default sampler, multijitter, would render 5 x 7
+    with pytest.raises(ValueError) as exc:
+        load_config(p)
+    assert "Mitsuba would render 35" in str(exc.value) and str(p) in str(exc.value) and "\n" not in str(exc.value)
