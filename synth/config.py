@@ -19,7 +19,6 @@ Limits, checked when the config is loaded, before any work:
 from __future__ import annotations
 
 import math
-
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -196,10 +195,10 @@ _SPP_RULE = {"stratified": "a square", "ldsampler": "a power of 4", "orthogonal"
 
 def sampler_spp(sampler: str, spp: int) -> int:
     """The samples per pixel Mitsuba's ``sampler`` renders when asked for ``spp``: ``stratified``
-    rounds up to a square, ``ldsampler`` to a power of 4 (at least 4), ``orthogonal`` to the square of a prime and
-    ``multijitter`` to an ``x`` by ``ceil(spp / x)`` grid (``x = isqrt(spp)``); ``independent`` takes
-    any count (tests/synth/test_config.py checks these rules
-    against Mitsuba's own ``sample_count()``)."""
+    rounds up to a square, ``ldsampler`` to a power of 4 (at least 4), ``orthogonal`` to the square
+    of a prime and ``multijitter`` to an ``x`` by ``ceil(spp / x)`` grid (``x = isqrt(spp)``);
+    ``independent`` takes any count. tests/synth/test_config.py checks these rules against
+    Mitsuba's own ``sample_count()``."""
     if sampler == "stratified":
         return math.ceil(math.sqrt(spp) - 1e-9) ** 2
     if sampler == "ldsampler":
