@@ -104,6 +104,11 @@ def started_samples(node, work: Path) -> int:
     return sum(int(p) in pids for p in log.read_text().split()) if log.is_file() else 0
 
 
+def _say(what: str, t0: float = time.time()) -> None:
+    """A progress line on stderr (the test shows it when the script runs out of time)."""
+    print(f"[ray_scenarios] {time.time() - t0:6.1f} s {what}", file=sys.stderr, flush=True)
+
+
 def main() -> None:
     import logging
 
@@ -130,6 +135,7 @@ def main() -> None:
         shutil.copytree(ref / "subjects", out / "subjects")
         return out
 
+    _say("cluster up; (a) plain run")
     t0 = time.time()
     generate(cfg, fresh("a"), engine="ray", progress=False)
     summary["a_s"] = round(time.time() - t0, 1)
@@ -154,6 +160,7 @@ def main() -> None:
     mine = ray.get_runtime_context().get_node_id()
     victim = worker if worker.node_id != mine else cluster.head_node
     summary["removed"] = "worker" if victim is worker else "head"
+    _say(f"(b) a node removed, victim {summary['removed']}")
     log = io.StringIO()
     with contextlib.redirect_stderr(log):
         generate(cfg, fresh("b"), engine="ray", progress=False, on_image=remove_node)
@@ -165,6 +172,7 @@ def main() -> None:
         time.sleep(0.2)
     summary["b_nodes_alive_after"] = sum(bool(n["Alive"]) for n in ray.nodes())
 
+    _say(f"(b) done, node removed at image {removed.get('at_image')}; (c) driver killed, then resumed")
     out = fresh("c")
     driver = subprocess.Popen([sys.executable, "-m", "synth.cli", "generate", str(cfg_path), "--out", str(out),
                                "--engine", "ray", "--address", cluster.address], stderr=subprocess.DEVNULL)
@@ -182,6 +190,7 @@ def main() -> None:
     # (d, e) Sample 5 fails for a data reason in the Ray workers (break_sample_5, a worker setup
     # hook): never retried; without skip_bad the run stops with the local one-line error, with it
     # the sample is listed as skipped.
+    _say("(d, e) a data fault")
     ray.shutdown()
     ray.init(address=cluster.address, log_to_driver=False, logging_level=logging.ERROR,
              runtime_env=hook_env("ray_scenarios.break_sample_5", work))
@@ -197,6 +206,7 @@ def main() -> None:
     summary["attempts_of_sample_5"] = len((work / "attempts.txt").read_text().splitlines())
     ray.shutdown()
     cluster.shutdown()
+    _say("done")
     print(json.dumps(summary))
 
 

@@ -143,7 +143,11 @@ def test_ray_cluster_of_two_nodes_makes_the_same_bytes(config, reference, tmp_pa
     script = ROOT / "tests" / "synth" / "ray_scenarios.py"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "RAY_USAGE_STATS_ENABLED": "0"}
     cmd = f"ip link set lo up && exec {sys.executable} {script} {config} {reference} {tmp_path}"
-    r = subprocess.run(["unshare", "-n", "sh", "-c", cmd], capture_output=True, text=True, timeout=420, env=env)
+    try:
+        r = subprocess.run(["unshare", "-n", "sh", "-c", cmd], capture_output=True, text=True, timeout=420, env=env)
+    except subprocess.TimeoutExpired as exc:  # where it was: the script's progress lines
+        err = exc.stderr.decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+        pytest.fail(f"ray_scenarios.py ran out of 420 s; its stderr ends:\n{err[-3000:]}")
     assert r.returncode == 0, r.stderr[-3000:]
     summary = json.loads(r.stdout.strip().splitlines()[-1])
     assert summary["b_removed_at_image"] is not None and summary["b_removed_at_image"] < 24, summary
