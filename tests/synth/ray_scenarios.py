@@ -3,7 +3,7 @@
     unshare -n sh -c 'ip link set lo up && python tests/synth/ray_scenarios.py CONFIG REF WORK'
 
 On a local two-node cluster (``ray.cluster_utils.Cluster``, 1 CPU each): (a) the dataset of CONFIG
-made with ``--engine ray``; (b) the same with the node the driver is not attached to removed after the first images (its tasks
+made with ``--engine ray``; (b) the same with the node the driver is not attached to removed once its worker is in a shard (its tasks
 are re-run on the head); (c) a driver killed with SIGKILL after its first shard, then ``--resume``.
 (d) sample 5 failing for a data reason in the workers, and (e) the same with skip_bad. Every run
 starts from REF's subjects (copied), and writes into WORK/{a,b,c,d,e}. Prints a JSON summary.
@@ -104,9 +104,13 @@ def started_samples(node, work: Path) -> int:
     return sum(int(p) in pids for p in log.read_text().split()) if log.is_file() else 0
 
 
-def _say(what: str, t0: float = time.time()) -> None:
-    """A progress line on stderr (the test shows it when the script runs out of time)."""
-    print(f"[ray_scenarios] {time.time() - t0:6.1f} s {what}", file=sys.stderr, flush=True)
+_START = time.time()
+
+
+def _say(what: str) -> None:
+    """A progress line on stderr, seconds since the start (the test shows it when the script runs
+    out of time)."""
+    print(f"[ray_scenarios] {time.time() - _START:6.1f} s {what}", file=sys.stderr, flush=True)
 
 
 def main() -> None:
