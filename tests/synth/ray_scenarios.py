@@ -3,9 +3,9 @@
     unshare -n sh -c 'ip link set lo up && python tests/synth/ray_scenarios.py CONFIG REF WORK'
 
 On a local two-node cluster (``ray.cluster_utils.Cluster``, 1 CPU each): (a) the dataset of CONFIG
-made with ``--engine ray``; (b) the same with the node the driver is not attached to removed once its worker is in a shard (its tasks
-are re-run on the head); (c) a driver killed with SIGKILL after its first shard, then ``--resume``.
-(d) sample 5 failing for a data reason in the workers, and (e) the same with skip_bad. Every run
+made with ``--engine ray``; (b) the same with the node the driver is not attached to removed once
+its worker is in a shard (its tasks are re-run on the head); (c) a driver killed with SIGKILL after
+its first shard, then ``--resume``. (d) sample 5 failing for a data reason in the workers, and (e) the same with skip_bad. Every run
 starts from REF's subjects (copied), and writes into WORK/{a,b,c,d,e}. Prints a JSON summary.
 """
 
@@ -97,11 +97,13 @@ def kill_workers_of(node) -> int:
     return killed
 
 
-def started_samples(node, work: Path) -> int:
-    """How many samples the node's live workers have started (``slow_samples``' log)."""
+def in_a_shard(node, work: Path) -> bool:
+    """Whether one of the node's live workers has started a sample (``slow_samples``' log)."""
     log = work / "starts.txt"
+    if not log.is_file():
+        return False
     pids = set(workers_of(node))
-    return sum(int(p) in pids for p in log.read_text().split()) if log.is_file() else 0
+    return any(int(p) in pids for p in log.read_text().split())
 
 
 _START = time.time()
@@ -149,7 +151,7 @@ def main() -> None:
     def remove_node(made: int) -> None:
         # Once the victim's worker is inside a shard (its first sample started), about 0.5 s in
         # on an idle machine; on a busy one its worker may start later than the head's images.
-        if not removed and started_samples(victim, work) >= 1:
+        if not removed and in_a_shard(victim, work):
             removed["at_image"] = made
             # Its worker processes die with it, mid-shard (left alone, a worker whose raylet died
             # can still finish its task and hand the result to the driver).

@@ -138,8 +138,8 @@ def _can_unshare() -> str:
 @pytest.mark.skipif(bool(_can_unshare()), reason=_can_unshare() or "ok")
 def test_ray_cluster_of_two_nodes_makes_the_same_bytes(config, reference, tmp_path):
     """Two 1-CPU nodes: a plain run; one with a node removed once its worker is in a shard (its
-    tasks re-run on the other); one whose driver is killed after its first shard, then resumed; a sample failing
-    for a data reason, without and with skip_bad."""
+    tasks re-run on the other); one whose driver is killed after its first shard, then resumed; a
+    sample failing for a data reason, without and with skip_bad."""
     script = ROOT / "tests" / "synth" / "ray_scenarios.py"
     env = {**os.environ, "PYTHONPATH": str(ROOT), "RAY_USAGE_STATS_ENABLED": "0"}
     cmd = f"ip link set lo up && exec {sys.executable} {script} {config} {reference} {tmp_path}"
