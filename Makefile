@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 # checked, and their contact sheet; a sheet of random BLSM bodies; the packaged HMR-BLSM evaluated
 # on them (out/demo/recovery: metrics.json and its results sheet).
 demo: $(STAMP)
-	$(BIN)/synth generate - --out out/demo/dataset --num 64 --workers 2 --resume
+	$(BIN)/synth generate - --out out/demo/dataset --num 64 --workers 2 --resume --replace-stale
 	$(BIN)/synth validate out/demo/dataset
 	$(BIN)/synth preview out/demo/dataset --out out/demo/contact_sheet.png --count 16
 	$(BIN)/blsm demo --out out/demo/bodies

@@ -1,6 +1,6 @@
 """The ``synth`` command: generate, preview, validate and export datasets.
 
-    synth generate CONFIG --out DIR [--num N] [--workers W] [--resume] [--skip-bad]
+    synth generate CONFIG --out DIR [--num N] [--workers W] [--resume [--replace-stale]] [--skip-bad]
                    [--engine local|ray [--address ADDR]] [--part I/N]
     synth merge DIR
     synth preview DIR --out PNG [--count N]
@@ -31,10 +31,12 @@ def _generate(args: argparse.Namespace) -> int:
     from synth.shards import parse_part
 
     part = parse_part(args.part) if args.part else (1, 1)
+    if args.replace_stale and not args.resume:
+        raise ValueError("--replace-stale needs --resume")
     if args.address and args.engine != "ray":
         raise ValueError("--address needs --engine ray")
     man = generate(cfg, args.out, workers=args.workers, resume=args.resume, stop_after=args.stop_after, part=part,
-                   engine=args.engine, address=args.address)
+                   engine=args.engine, address=args.address, replace_stale=args.replace_stale)
     n = sum(e["samples"] for e in man["shards"].values())
     what = f"part {part[0]}/{part[1]}: " if part[1] > 1 else ""
     print(f"{args.out}: {what}{n} samples in {len(man['shards'])} shards" + (f", {len(man.get('skipped', []))} skipped" if man.get("skipped") else ""))
@@ -89,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="override one config key, VALUE in YAML (repeatable; e.g. --set hair.enabled=false)")
     g.add_argument("--workers", type=int, default=1)
     g.add_argument("--resume", action="store_true", help="continue an interrupted run into --out")
+    g.add_argument("--replace-stale", action="store_true",
+                   help="with --resume: move a dataset made with other settings to DIR.stale-<time> (nothing is "
+                   "deleted) and start anew, instead of refusing")
     g.add_argument("--skip-bad", action="store_true", help="skip and list bad samples or scans instead of stopping")
     g.add_argument("--engine", choices=("local", "ray"), default="local",
                    help="local: a process pool of --workers (default); ray: one Ray task per shard")

@@ -586,6 +586,7 @@ def generate(
     part: tuple[int, int] = (1, 1),
     engine: str = "local",
     address: str | None = None,
+    replace_stale: bool = False,
 ) -> dict[str, Any]:
     """Generate the dataset of ``cfg`` into ``out``; return the manifest.
 
@@ -608,6 +609,9 @@ def generate(
         engine: ``"local"`` (a process pool of ``workers``) or ``"ray"`` (one Ray task per shard,
             :mod:`synth.engine_ray`; ``workers`` is not used).
         address: the Ray cluster to join (``engine="ray"``); None starts a local one.
+        replace_stale: with ``resume``, a dataset in ``out`` made by another run (config, seed,
+            count or shard size) is moved to a sibling folder by :func:`set_aside_stale` instead
+            of refusing the run (``make demo`` after the defaults changed).
 
     Every input file (backgrounds, scans, poses) is opened and checked first; then the folder is
     locked (:mod:`synth.lock`: one writer per folder; temporary files carry the writer's tag). Bad
@@ -628,14 +632,57 @@ def generate(
                          part=part)
     if not writer.shards():
         raise ValueError(f"part {part[0]}/{part[1]} has no shards: the dataset has {writer.num_shards}")
-    writer.pending(resume)  # fail fast (a dataset already there); checked again under the lock
+    if not (resume and replace_stale):
+        writer.pending(resume)  # fail fast (a dataset already there); checked again under the lock
+    elif part != (1, 1):
+        raise ValueError("replace_stale (--replace-stale) sets aside a whole dataset; it cannot be used with --part")
     model = blsm.load()
     check_inputs(cfg, model)
+    if resume and replace_stale:
+        aside = set_aside_stale(writer)
+        if aside is not None:
+            _log(f"{out}: held a dataset made with other settings; moved it to {aside}")
     variant = choose_variant(cfg)
     # The cluster is reached (or Ray found missing) before anything is made.
     with _ray_session(address) if engine == "ray" else contextlib.nullcontext():
         return _generate(cfg, out, writer, model, variant, workers, resume, progress, stop_after, on_image, part,
                          engine)
+
+
+def set_aside_stale(writer: ShardWriter) -> Path | None:
+    """Move what ``writer``'s folder holds to ``<folder>.stale-<UTC time>`` when its manifest
+    describes another run (:meth:`synth.shards.ShardWriter.same_run`); return that folder, or None
+    when there was nothing to move (no manifest, or the same run, which ``--resume`` continues).
+
+    Nothing is deleted. The folder is locked for the move (:mod:`synth.lock`), so a run writing
+    into it is never moved from under it; every entry but the lock files moves, and the folder stays
+    (empty) for the new run. An unreadable manifest is not a run to set aside: it stays an error.
+    """
+    out = writer.out
+    man_path = writer.manifest_path
+    if not man_path.exists():
+        return None
+    with out_lock.acquire(out, 1, 1, warn=_log):
+        try:
+            man = json.loads(man_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
+        try:
+            writer.same_run(man, man_path)
+            return None
+        except ValueError:
+            pass
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        aside = out.with_name(f"{out.name}.stale-{stamp}")
+        n = 1
+        while aside.exists():
+            n += 1
+            aside = out.with_name(f"{out.name}.stale-{stamp}-{n}")
+        aside.mkdir()
+        for entry in sorted(out.iterdir()):
+            if not entry.name.startswith(out_lock.LOCK_PREFIX):
+                entry.rename(aside / entry.name)
+    return aside
 
 
 @contextlib.contextmanager

@@ -91,6 +91,30 @@ def test_refuses_to_overwrite_or_to_resume_a_different_run(tmp_path):
         writer(tmp_path, config={"pipeline": "other"}).run(make_sample, resume=True)
 
 
+def test_replace_stale_moves_another_runs_dataset_aside_and_keeps_the_same_run(tmp_path):
+    """``synth generate --resume --replace-stale`` (make demo after the defaults changed): a dataset
+    made with other settings is moved whole to ``ds.stale-<time>`` (nothing deleted); the same run's
+    is kept for --resume; no manifest is nothing to move."""
+    from synth.generate import set_aside_stale
+
+    assert set_aside_stale(writer(tmp_path)) is None  # an empty folder
+    writer(tmp_path).run(make_sample, stop_after=2)
+    (tmp_path / "ds" / "subjects").mkdir()
+    (tmp_path / "ds" / "subjects" / "mine.txt").write_text("a user's file")
+    before = {p.relative_to(tmp_path / "ds"): p.read_bytes() for p in (tmp_path / "ds").rglob("*") if p.is_file()}
+    assert set_aside_stale(writer(tmp_path)) is None  # the same run: left for --resume
+    aside = set_aside_stale(writer(tmp_path, config={"pipeline": "other"}))
+    assert aside is not None and aside.parent == tmp_path and aside.name.startswith("ds.stale-")
+    assert list((tmp_path / "ds").iterdir()) == []  # no lock file left behind either
+    after = {p.relative_to(aside): p.read_bytes() for p in aside.rglob("*") if p.is_file()}
+    assert after == before
+    man = writer(tmp_path, config={"pipeline": "other"}).run(make_sample, resume=True)
+    assert man["complete"] and len(man["shards"]) == 5
+    (tmp_path / "ds" / MANIFEST).write_text("{")
+    with pytest.raises(ValueError, match=f"{MANIFEST}: unreadable manifest"):
+        set_aside_stale(writer(tmp_path, seed=9))
+
+
 def test_failed_sample_leaves_no_shard(tmp_path):
     def bad(index, rng):
         if index == 3:
