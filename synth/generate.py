@@ -669,9 +669,10 @@ def set_aside_stale(writer: ShardWriter) -> Path | None:
             raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
         try:
             writer.same_run(man, man_path)
-            return None
-        except ValueError:
+        except ValueError:  # another run's dataset (or not one of ours): moved, not refused
             pass
+        else:
+            return None
         stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         aside = out.with_name(f"{out.name}.stale-{stamp}")
         n = 1
