@@ -108,6 +108,21 @@ def ages_section(n: int, png: Path) -> str:
     return "\n".join(lines)
 
 
+def time_scenes(maker, seed: int, scenes: int) -> tuple[list[dict], float]:
+    """Samples 1..``scenes`` of ``maker`` (a ``synth.generate.SampleMaker``) and the seconds per
+    sample spent making them, after a warm-up sample (kernels compile once) and rigging every subject
+    (per-subject work, the render mesh and hair, is made once). benchmarks/time_images.py times an
+    older checkout with it too."""
+    from synth.shards import sample_rng
+
+    maker.make(0, sample_rng(seed, 0))
+    for si in range(len(maker.subjects)):
+        maker.rig(si)
+    t0 = time.perf_counter()
+    samples = [maker.make(i, sample_rng(seed, i)) for i in range(1, scenes + 1)]
+    return samples, (time.perf_counter() - t0) / scenes
+
+
 def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_spp: int, rounds: int) -> str:
     import dataclasses
 
@@ -117,7 +132,6 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
     from synth.denoise import psnr
     import blsm
     from synth.generate import SampleMaker, prepare_subjects
-    from synth.shards import sample_rng
 
     base = load_config(config)
     work.mkdir(parents=True, exist_ok=True)
@@ -146,13 +160,8 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
     ref_cfgs = {k: variant_cfg(ref_spp, False, *k) for k in set(scene_of.values())}
 
     def render_all(cfg) -> tuple[list[np.ndarray], float]:
-        maker = SampleMaker(cfg, work, variant, threads=0)
-        maker.make(0, sample_rng(cfg.seed, 0))  # warm-up: kernels compile once
-        for si in range(len(maker.subjects)):  # per-subject work (render mesh, hair) is made once
-            maker.rig(si)
-        t0 = time.perf_counter()
-        out = [fmt.decode_png(maker.make(i, sample_rng(cfg.seed, i))["rgb.png"], "rgb") for i in range(1, scenes + 1)]
-        return out, (time.perf_counter() - t0) / scenes
+        samples, seconds = time_scenes(SampleMaker(cfg, work, variant, threads=0), cfg.seed, scenes)
+        return [fmt.decode_png(s["rgb.png"], "rgb") for s in samples], seconds
 
     refs = {k: render_all(c)[0] for k, c in ref_cfgs.items()}
     times: dict[str, list[float]] = {k: [] for k in conds}

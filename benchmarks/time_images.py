@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import inspect
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -29,24 +28,16 @@ def main() -> None:
 
     import blsm
     from blsm.mitsuba_util import resolve_variant
+    from bench_realism import time_scenes  # this script's folder is on sys.path
     from synth.config import load_config
     from synth.generate import SampleMaker, prepare_subjects
-    from synth.shards import sample_rng
 
     cfg, work = load_config(args.config), Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
     prepare_subjects(cfg, work, blsm.load())
     kw = {"threads": 0} if "threads" in inspect.signature(SampleMaker).parameters else {}  # older checkouts lack it
     maker = SampleMaker(cfg, work, resolve_variant(None), **kw)
-    maker.make(0, sample_rng(cfg.seed, 0))
-    for si in range(len(maker.subjects)):
-        maker.rig(si)
-    times = []
-    for _ in range(args.rounds):
-        t0 = time.perf_counter()
-        for i in range(1, 13):
-            maker.make(i, sample_rng(cfg.seed, i))
-        times.append((time.perf_counter() - t0) / 12)
+    times = [time_scenes(maker, cfg.seed, 12)[1] for _ in range(args.rounds)]  # later rounds: warm-up again, cheap
     print(json.dumps({"s_per_image": times, "median": float(np.median(times))}))
 
 

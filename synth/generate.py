@@ -659,16 +659,14 @@ def set_aside_stale(writer: ShardWriter) -> Path | None:
     (empty) for the new run. An unreadable manifest is not a run to set aside: it stays an error.
     """
     out = writer.out
-    man_path = writer.manifest_path
-    if not man_path.exists():
+    if not writer.manifest_path.exists():
         return None
     with out_lock.acquire(out, 1, 1, warn=_log):
+        man = writer.read_manifest()
+        if man is None:  # removed before the lock was taken
+            return None
         try:
-            man = json.loads(man_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
-        try:
-            writer.same_run(man, man_path)
+            writer.same_run(man, writer.manifest_path)
         except ValueError:  # another run's dataset (or not one of ours): moved, not refused
             pass
         else:

@@ -265,6 +265,17 @@ class ShardWriter:
             if theirs != mine:
                 raise ValueError(f"{man_path}: {key} differs from this run; {what}")
 
+    def read_manifest(self) -> Any:
+        """The parsed :attr:`manifest_path`, or None when there is none; a ValueError naming it when
+        it cannot be read or parsed."""
+        man_path = self.manifest_path
+        if not man_path.exists():
+            return None
+        try:
+            return json.loads(man_path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
+
     def pending(self, resume: bool) -> tuple[list[int], dict[str, Any], list[dict[str, Any]]]:
         """The shards still to make, the finished ones' manifest entries, and the samples the
         manifest lists as skipped in those finished shards.
@@ -282,12 +293,9 @@ class ShardWriter:
                 raise ValueError(f"{self.out}: holds parts of a dataset (manifest-part-*.json); run synth merge, "
                                  "or continue the parts with --part I/N --resume")
             return mine, {}, []
-        if not man_path.exists():
+        man = self.read_manifest()
+        if man is None:
             return mine, {}, []
-        try:
-            man = json.loads(man_path.read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
         self.same_run(man, man_path)
         done: dict[str, Any] = {}
         entries = man.get("shards") or {}
