@@ -38,7 +38,7 @@ from synth import labels as lab
 from synth import lock as out_lock
 from synth.camera import outline_index, sample_camera
 from synth.config import GeneratorConfig
-from synth.render import PeopleRenderer, RenderMesh
+from synth.render import PeopleRenderer, RenderMesh, people_window
 from synth.shards import ShardWriter, SkipSample, WriteError, sample_rng
 from synth.subjects import Subject, anny_subject, load_subject, model_fingerprint, pose_subject, save_subject
 
@@ -381,6 +381,8 @@ class SampleMaker:
             [p["vertices"] for p in people], [q["texture"] for q in rigs], camera,
             back.env, back.rotation, back.scale, None if composite else back.backplate, cfg.render.spp, seed,
             [(p["hair"], q["hair"][1].colours) for p, q in zip(people, rigs)] if self.hair else None,
+            # Composited, the backdrop is not path traced: only the people's window is.
+            people_window(camera, np.concatenate([p["outline"] for p in people])) if composite else None,
         )  # fmt: skip
         if composite:
             self._composite_backdrop(r, frame, camera, cam_info, back, people, rng)

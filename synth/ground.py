@@ -82,10 +82,18 @@ def env_lookup(env: np.ndarray, directions: np.ndarray, rotation: float = 0.0, s
     return (out * scale).astype(np.float32)
 
 
+_RAYS_CACHE: list[tuple[bytes, tuple[np.ndarray, np.ndarray]]] = []  # the last call's (key, rays)
+
+
 def pixel_rays(camera: Camera, offsets: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Camera centre (3,) and unit world directions (H, W, S, 3) of rays through each pixel at the
-    sub-pixel ``offsets`` (S, 2) in [0, 1) (default: the centre, 0.5)."""
+    sub-pixel ``offsets`` (S, 2) in [0, 1) (default: the centre, 0.5). Read-only arrays: the last
+    call's are kept, since the backdrop and the ground points of one image ask for the same rays."""
     offsets = np.array([[0.5, 0.5]]) if offsets is None else np.asarray(offsets, np.float64)
+    key = b"".join(np.ascontiguousarray(a, np.float64).tobytes() for a in (camera.K, camera.R, camera.t, offsets))
+    key += np.array([camera.width, camera.height, *offsets.shape]).tobytes()
+    if _RAYS_CACHE and _RAYS_CACHE[0][0] == key:
+        return _RAYS_CACHE[0][1]
     u = np.arange(camera.width)[None, :, None] + offsets[None, None, :, 0]
     v = np.arange(camera.height)[:, None, None] + offsets[None, None, :, 1]
     u, v = np.broadcast_arrays(u, v)
@@ -94,6 +102,8 @@ def pixel_rays(camera: Camera, offsets: np.ndarray | None = None) -> tuple[np.nd
     world = cam_dirs @ camera.R  # R^T d for row vectors
     world /= np.linalg.norm(world, axis=-1, keepdims=True)
     centre = -camera.R.T @ camera.t
+    centre.flags.writeable = world.flags.writeable = False
+    _RAYS_CACHE[:] = [(key, (centre, world))]
     return centre, world
 
 
@@ -217,8 +227,25 @@ def shadow_ratio(
     if not mask.any():
         return ratio.astype(np.float32), mask
     origins = pts[mask] + np.array([0.0, 1e-4, 0.0])  # (P, 3), just above the ground
-    p = len(origins)
     sampler = EnvSampler(env, rotation)
+    if pool and isinstance(ray_test, SceneOccluder):
+        blocked = ray_test.blocked(origins, sampler.sample(pool, rng), samples, people_sphere, int(rng.integers(2**63)))
+    else:
+        blocked = _blocked(ray_test, origins, sampler, samples, people_sphere, rng, pool)
+    ratio[mask] = 1.0 - np.asarray(blocked, np.float64) / samples
+    # Smooth the Monte Carlo noise over ground pixels only (normalised box filter).
+    m = mask.astype(np.float64)
+    num = uniform_filter(ratio * m, size=5, mode="nearest")
+    den = uniform_filter(m, size=5, mode="nearest")
+    smooth = np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
+    ratio[mask] = smooth[mask]
+    return ratio.astype(np.float32), mask
+
+
+def _blocked(ray_test: Any, origins: np.ndarray, sampler: EnvSampler, samples: int,
+             people_sphere: tuple[np.ndarray, float], rng: np.random.Generator, pool: int) -> np.ndarray:
+    """(P,) blocked rays of each origin, in NumPy around any ``ray_test`` (:func:`shadow_ratio`)."""
+    p = len(origins)
     if pool:
         dirs = sampler.sample(pool, rng).astype(np.float32)[rng.integers(0, pool, size=(p, samples))]
     else:
@@ -230,26 +257,61 @@ def shadow_ratio(
     disc = b * b - ((oc * oc).sum(-1) - r * r).astype(np.float32)[:, None]
     cand = (disc >= 0) & (np.sqrt(np.maximum(disc, 0.0)) > b)
     pi, si = np.nonzero(cand)
-    blocked = np.zeros(p)
-    if len(pi):
-        hit = np.asarray(ray_test(origins[pi], dirs[pi, si].astype(np.float64)), bool)
-        blocked = np.bincount(pi[hit], minlength=p)
-    ratio[mask] = 1.0 - blocked / samples
-    # Smooth the Monte Carlo noise over ground pixels only (normalised box filter).
-    m = mask.astype(np.float64)
-    num = uniform_filter(ratio * m, size=5, mode="nearest")
-    den = uniform_filter(m, size=5, mode="nearest")
-    smooth = np.where(den > 0, num / np.maximum(den, 1e-12), 1.0)
-    ratio[mask] = smooth[mask]
-    return ratio.astype(np.float32), mask
+    if not len(pi):
+        return np.zeros(p)
+    hit = np.asarray(ray_test(origins[pi], dirs[pi, si].astype(np.float64)), bool)
+    return np.bincount(pi[hit], minlength=p)
 
 
-def mitsuba_ray_test(mi: Any, scene: Any) -> Any:
-    """A ``ray_test`` for :func:`shadow_ratio` on a loaded Mitsuba scene (its shapes occlude)."""
+class SceneOccluder:
+    """The people of a loaded Mitsuba scene as the occluders of :func:`shadow_ratio`.
 
-    def test(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    Called as ``f(origins (N, 3), directions (N, 3)) -> (N,) bool`` it tests the given rays
+    (``Scene.ray_test``). :meth:`blocked` does the whole pooled estimate in one Dr.Jit kernel:
+    every ground point's ``samples`` directions are picked from the pool by a PCG32 stream per
+    ray (seeded by ``seed``), the rays that miss the people's sphere are masked off, the rest are
+    tested against the scene, and the blocked rays are summed per point; only the points and the
+    pool go in and one count per point comes out (the NumPy path moves every ray's direction).
+    """
+
+    def __init__(self, mi: Any, scene: Any) -> None:
+        self.mi, self.scene = mi, scene
+
+    def __call__(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        mi = self.mi
         o = mi.Point3f(*(np.ascontiguousarray(origins[:, i], np.float32) for i in range(3)))
         d = mi.Vector3f(*(np.ascontiguousarray(directions[:, i], np.float32) for i in range(3)))
-        return np.asarray(scene.ray_test(mi.Ray3f(o, d)), dtype=bool)
+        return np.asarray(self.scene.ray_test(mi.Ray3f(o, d)), dtype=bool)
 
-    return test
+    def blocked(self, origins: np.ndarray, pool: np.ndarray, samples: int, people_sphere: tuple[np.ndarray, float],
+                seed: int) -> np.ndarray:
+        """(P,) how many of each origin's ``samples`` rays, directions drawn uniformly from ``pool``
+        (M, 3), hit a person."""
+        import drjit as dr
+
+        mi = self.mi
+        p, m = len(origins), len(pool)
+
+        def vec(a: np.ndarray, kind: Any) -> Any:
+            return kind(*(np.ascontiguousarray(a[:, i], np.float32) for i in range(3)))
+
+        o_all, d_all = vec(origins, mi.Point3f), vec(pool, mi.Vector3f)
+        idx = dr.arange(mi.UInt32, p * samples)
+        point = idx // samples
+        rng = mi.PCG32(size=p * samples, initstate=dr.opaque(mi.UInt64, seed % 2**64), initseq=mi.UInt64(idx))
+        o = dr.gather(mi.Point3f, o_all, point)
+        d = dr.gather(mi.Vector3f, d_all, rng.next_uint32_bounded(m))
+        # A ray o + t d (t > 0) can meet the sphere only where disc >= 0 and its far root is ahead.
+        # Opaque, so that a new sphere or seed does not compile a new kernel.
+        c, r = people_sphere
+        oc = o - dr.opaque(mi.Point3f, [float(x) for x in c])
+        b = dr.dot(d, oc)
+        disc = b * b - (dr.squared_norm(oc) - dr.opaque(mi.Float, float(r) ** 2))
+        cand = (disc >= 0) & (dr.safe_sqrt(disc) > b)
+        hit = self.scene.ray_test(mi.Ray3f(o, d), cand)
+        return np.asarray(dr.block_sum(dr.select(hit & cand, 1.0, 0.0), samples), np.float64)
+
+
+def mitsuba_ray_test(mi: Any, scene: Any) -> SceneOccluder:
+    """The ``ray_test`` of :func:`shadow_ratio` for a loaded Mitsuba scene (its shapes occlude)."""
+    return SceneOccluder(mi, scene)

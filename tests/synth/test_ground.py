@@ -169,3 +169,26 @@ def test_backdrop_takes_one_ray_a_pixel_while_pixels_are_smaller_than_texels():
     dense = env_backdrop(wide, env, 0.2, 1.0, supersample=8)
     auto, one = env_backdrop(wide, env, 0.2, 1.0), env_backdrop(wide, env, 0.2, 1.0, supersample=1)
     assert np.abs(auto - dense).mean() < 0.5 * np.abs(one - dense).mean()
+
+
+def test_the_scene_occluders_one_kernel_estimate_is_the_numpy_estimate():
+    """SceneOccluder.blocked (the pooled estimate in one Dr.Jit kernel, what the generator uses)
+    against the NumPy estimate around the same scene's ray test: a disc of radius 1 at height 1 in
+    a uniform sky blocks half the cosine-weighted hemisphere straight under its centre."""
+    from blsm.mitsuba_util import load_mitsuba, resolve_variant
+    from synth.ground import SceneOccluder
+
+    mi = load_mitsuba(resolve_variant(None))
+    to_world = mi.ScalarTransform4f().translate([0.0, 1.0, 0.0]) @ mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], -90.0)
+    occluder = SceneOccluder(mi, mi.load_dict({"type": "scene", "disc": {"type": "disk", "to_world": to_world}}))
+    env = np.ones((64, 128, 3), np.float32)
+    cam = look_at_camera(np.array([0.0, 4.0, 2.5]), np.array([0.0, 0.0, 0.0]), width=24, height=24)
+    sphere = (np.array([0.0, 1.0, 0.0]), 1.01)
+    kernel, mask = shadow_ratio(occluder, cam, env, 0.0, sphere, np.random.default_rng(0), samples=256)
+    numpy_, mask2 = shadow_ratio(lambda o, d: occluder(o, d), cam, env, 0.0, sphere, np.random.default_rng(0), samples=256)
+    assert mask.all() and np.array_equal(mask, mask2)
+    assert np.abs(kernel - numpy_).max() < 0.05  # two Monte Carlo estimates (25 x 256 rays a pixel)
+    assert kernel.min() == pytest.approx(0.5, abs=0.05) and numpy_.min() == pytest.approx(0.5, abs=0.05)
+    assert kernel.max() > 0.85 and numpy_.max() > 0.85  # the shadow fades away from the disc
+    again, _ = shadow_ratio(occluder, cam, env, 0.0, sphere, np.random.default_rng(0), samples=256)
+    assert np.array_equal(kernel, again)  # the seed fixes it

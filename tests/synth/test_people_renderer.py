@@ -92,3 +92,49 @@ def test_multijitter_sampler_has_less_noise_and_the_same_labels(scene):
         err[sampler], frames[sampler] = np.mean(errs), f
     assert err["multijitter"] < 0.7 * err["independent"], err
     _assert_same(frames["multijitter"], frames["independent"], rgb_atol=np.inf)
+
+
+def test_people_window_holds_the_projected_mesh_and_rounds_its_sides():
+    from synth.render import people_window
+
+    cam = look_at_camera(np.array([0.0, 1.0, 4.0]), np.array([0.0, 1.0, 0.0]), width=64, height=48)
+    pts = np.array([[-0.3, 0.6, 0.0], [0.2, 1.5, 0.1], [0.0, 1.0, -0.2]])
+    x0, y0, w, h = people_window(cam, pts, quantum=16)
+    uv = cam.project(pts)
+    assert x0 <= uv[:, 0].min() and uv[:, 0].max() < x0 + w and y0 <= uv[:, 1].min() and uv[:, 1].max() < y0 + h
+    assert w % 16 == 0 and h % 16 == 0 and x0 + w <= 64 and y0 + h <= 48
+    assert people_window(cam, pts, quantum=1, margin=0) == (
+        int(np.floor(uv[:, 0].min())), int(np.floor(uv[:, 1].min())),
+        int(np.floor(uv[:, 0].max())) - int(np.floor(uv[:, 0].min())) + 1,
+        int(np.floor(uv[:, 1].max())) - int(np.floor(uv[:, 1].min())) + 1)  # fmt: skip
+    assert people_window(cam, pts * 40.0, quantum=16) == (0, 0, 64, 48)  # larger than the image: all of it
+    behind = np.concatenate([pts, [[0.0, 1.0, 5.0]]])  # a point behind the camera: the whole image
+    assert people_window(cam, behind) == (0, 0, 64, 48)
+
+
+def test_a_window_render_is_the_full_render_where_people_can_be(scene):
+    """With the environment hidden, rendering only the people's window gives the full render's
+    labels exactly, nothing outside the window (where the full render has no person either), and
+    inside it the same image up to Monte Carlo noise."""
+    from synth.render import people_window
+
+    verts, mesh, textures, env, cam = scene
+    r = _renderer(scene, backplate=True)
+    window = people_window(cam, verts, quantum=2)
+    x0, y0, w, h = window
+    assert w * h < 0.8 * SIZE * SIZE, window  # a real crop
+    inside = np.zeros((SIZE, SIZE), bool)
+    inside[y0 : y0 + h, x0 : x0 + w] = True
+    full = r.render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=256, seed=1)
+    part = r.render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=256, seed=1, window=window)
+    _assert_same(part, full, rgb_atol=np.inf)
+    assert full.alpha[~inside].max() == 0.0 and not full.hit[~inside].any()
+    assert part.alpha[~inside].max() == 0.0 and part.rgb[~inside].max() == 0.0
+    assert full.alpha.sum() > 50
+    assert np.abs(part.alpha - full.alpha).max() < 0.15
+    assert abs(float(part.rgb.mean() - full.rgb.mean())) < 2e-3
+    assert float(np.sqrt(np.mean((part.rgb - full.rgb) ** 2))) < 0.02
+    with pytest.raises(ValueError, match="environment hidden"):
+        _renderer(scene).render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=1, window=window)
+    with pytest.raises(ValueError, match="not inside"):
+        r.render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=1, window=(SIZE - 4, 0, 8, 8))
