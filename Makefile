@@ -33,7 +33,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_mesh.py --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_scale.py --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_realism.py --out docs/realism.md --noise configs/synth/preview/noise_hdri.yaml \
-		--scenes 12 --render multijitter:25 ldsampler:16 ldsampler:64 --ref-spp 1024 --rounds 3
+		--scenes 12 --render multijitter:25 ldsampler:16 ldsampler:64 --ref-spp 1024 --rounds 5
 
 # The packaged model, learnt from scans (thesis Sec. 5.4): 1000 Anny stand-in subjects made with
 # the packaged rig, registration, learning, SMPL-reimpl and the held-out evaluation into docs/

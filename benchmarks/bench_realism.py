@@ -176,6 +176,7 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
             times[name].append(t)
             ref = refs[scene_of[name]]
             quality[name] = float(np.mean([psnr(a / 255.0, b / 255.0) for a, b in zip(imgs, ref)]))
+            print(f"[bench_realism] {name}: {quality[name]:.3f} dB, {t:.3f} s per image", flush=True)
     before = float(np.median(times[next(iter(conds))]))
     # Each row's time against the old render settings (independent 16 spp) on the same content.
     same_before = {(False, False): before, (True, True): float(np.median(times["independent 16 spp, no denoiser, shadows, hair"]))}

@@ -17,7 +17,9 @@ darkens under them: they float. The shadow catcher puts the missing shadows onto
    and every ground point takes its ``n`` from the pool at random, which costs a fraction of
    drawing ``n`` fresh directions for every point. Rays that miss the people's bounding sphere are unoccluded and
    are not traced; the others are tested against the people's meshes with Mitsuba's
-   ``Scene.ray_test`` (the renderer's own scene, so the people are exactly the rendered ones).
+   ``Scene.ray_test`` (the renderer's own scene, so the people are exactly the rendered ones). On a
+   Mitsuba scene (:class:`SceneOccluder`) the picking, the sphere test, the ray test and the
+   per-point sums are one Dr.Jit kernel.
 3. ``S`` is smoothed by a normalised 5 x 5 box filter over ground pixels (Monte Carlo noise),
    and the backdrop is multiplied by it on ground pixels: a photographed diffuse ground under a
    shadow is darker by exactly that ratio. The people are composited over the result with the

@@ -18,6 +18,7 @@ face indices stay those of the person's mesh.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -65,6 +66,18 @@ class RenderMesh:
     @property
     def key(self) -> tuple[int, int, int]:
         return (len(self.split_vertex), len(self.faces), hash(self.split_faces.tobytes()))
+
+
+@functools.lru_cache(maxsize=None)
+def _hair_bsdf(variant: str) -> Any:
+    """The hair's BSDF, one object per process and variant for every hair of every renderer (the
+    colour is each hair mesh's own attribute). Dr.Jit traces a BSDF call once for each BSDF alive
+    in the process, so each renderer's and slot's own copy made every render trace the principled
+    BSDF again (about 4 ms a copy here)."""
+    mi = load_mitsuba(variant)
+    colour = {"type": "mesh_attribute", "name": "vertex_color"}
+    return mi.load_dict({"type": "twosided", "bsdf": {
+        "type": "principled", "base_color": colour, "roughness": 0.45, "specular": 0.35}})  # fmt: skip
 
 
 def people_window(camera: Camera, points: np.ndarray, quantum: int = 16, margin: int = 1) -> tuple[int, int, int, int]:
@@ -263,9 +276,7 @@ class PeopleRenderer:
 
         mi = self.mi
         props = mi.Properties()
-        colour = {"type": "mesh_attribute", "name": "vertex_color"}
-        props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {
-            "type": "principled", "base_color": colour, "roughness": 0.45, "specular": 0.35}})  # fmt: skip
+        props["bsdf"] = _hair_bsdf(self.variant)
         nv, faces = num_vertices(), hair_faces()
         mesh = mi.Mesh(f"hair_{i}", nv, len(faces), props=props, has_vertex_normals=True)
         mesh.add_attribute("vertex_color", 3, mi.Float(np.full(3 * nv, 0.1, np.float32)))
