@@ -1,5 +1,6 @@
 """The renderer's speed measures keep the pixels: shape-group layout vs meshes in the scene, the
-spare emitter, and texture uploads skipped for a slot that keeps its texture."""
+spare emitter, texture uploads skipped for a slot that keeps its texture, and rendering only the
+people's window."""
 
 from __future__ import annotations
 
