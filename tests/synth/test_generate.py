@@ -233,12 +233,12 @@ def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny, 
     from blsm.mitsuba_util import resolve_variant
     from synth.shards import sample_rng
 
-    cfg = dataclasses.replace(TINY, render=RenderConfig(spp=64))
+    cfg = dataclasses.replace(TINY, render=RenderConfig(spp=36))
     made = {}
     for name, side in (("window", 0), ("whole", 10**9)):
         monkeypatch.setattr(gen, "WINDOW_MIN_SIDE", side)
         maker = gen.SampleMaker(cfg, tiny, resolve_variant(None), threads=0)
-        made[name] = [fmt.decode_sample(maker.make(i, sample_rng(cfg.seed, i))) for i in (1, 2)]
+        made[name] = [fmt.decode_sample(maker.make(1, sample_rng(cfg.seed, 1)))]
     for a, b in zip(made["window"], made["whole"]):
         for count in ("ground_pixels", "shadowed_pixels"):
             n = [d["background"]["ground"].pop(count) for d in (a["json"], b["json"])]
