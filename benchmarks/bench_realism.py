@@ -157,7 +157,8 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
     conds[f"after: every default ({name0}, shadows, hair)"] = base
     # The old render settings and the bar on the defaults' content (shadows and hair): the render
     # settings' cost and gain at equal content.
-    conds["independent 16 spp, no denoiser, shadows, hair"] = variant_cfg(16, False, True, True)
+    old_on_content = "independent 16 spp, no denoiser, shadows, hair"
+    conds[old_on_content] = variant_cfg(16, False, True, True)
     conds["independent 128 spp, no denoiser, shadows, hair (the bar with this content)"] = variant_cfg(128, False, True, True)
     # The references: the same scenes at ref_spp undenoised, without and with the shadows and hair.
     scene_of = {name: (cfg.ground.shadows, cfg.hair.enabled) for name, cfg in conds.items()}
@@ -179,7 +180,7 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
             print(f"[bench_realism] {name}: {quality[name]:.3f} dB, {t:.3f} s per image", flush=True)
     before = float(np.min(times[next(iter(conds))]))
     # Each row's time against the old render settings (independent 16 spp) on the same content.
-    same_before = {(False, False): before, (True, True): float(np.min(times["independent 16 spp, no denoiser, shadows, hair"]))}
+    same_before = {(False, False): before, (True, True): float(np.min(times[old_on_content]))}
     lines = [
         f"`{config}`: {scenes} scenes ({base.camera.width} x {base.camera.height} px), reference {ref_spp} spp undenoised "
         f"of the same scenes (with the shadow catcher and hair where the row has them), {rounds} rounds, this machine's cores; "

@@ -262,6 +262,7 @@ class SampleMaker:
             self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
         # Hair is grown on Anny's stand-in people only: user scans carry their own.
         self.hair = cfg.hair.enabled and cfg.pipeline != "raw" and cfg.subjects.source == "anny"
+        self.windowed = min(cfg.camera.width, cfg.camera.height) >= WINDOW_MIN_SIDE
         self.head_bone = list(m.bone_names).index("head")
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, dict[str, Any]] = {}
@@ -375,7 +376,8 @@ class SampleMaker:
                     p[k] = (p[k] + d).astype(np.float32)
             p["transl"] = (p["transl"] + d).astype(np.float32)
             p["outline"] = (v[idx] + d).astype(np.float32)
-        camera, cam_info = sample_camera(np.concatenate([p["outline"] for p in people]), cfg.camera, rng)
+        outline = np.concatenate([p["outline"] for p in people])  # every person's hull vertices
+        camera, cam_info = sample_camera(outline, cfg.camera, rng)
         back = self.background(rng)
         rigs = [p["rig"] for p in people]
         # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
@@ -389,11 +391,10 @@ class SampleMaker:
             back.env, back.rotation, back.scale, None if composite else back.backplate, cfg.render.spp, seed,
             [(p["hair"], q["hair"][1].colours) for p, q in zip(people, rigs)] if self.hair else None,
             # Composited, the backdrop is not path traced: only the people's window is.
-            people_window(camera, np.concatenate([p["outline"] for p in people])) if composite and min(
-                cfg.camera.width, cfg.camera.height) >= WINDOW_MIN_SIDE else None,
+            people_window(camera, outline) if composite and self.windowed else None,
         )  # fmt: skip
         if composite:
-            self._composite_backdrop(r, frame, camera, cam_info, back, people, rng)
+            self._composite_backdrop(r, frame, camera, cam_info, back, outline, rng)
         labels = lab.person_labels(
             frame, camera,
             [{"vertices": p["vertices"], "outline": p["outline"], "faces": q["faces"], "face_bones": q["face_bones"],
@@ -412,10 +413,10 @@ class SampleMaker:
         return {"hair_vertices": p["hair"], "hair_faces": hair_faces(), "hair_bone": self.head_bone}
 
     def _composite_backdrop(self, r: PeopleRenderer, frame: Any, camera: Any, cam_info: dict, back: bg.Background,
-                            people: list[dict[str, Any]], rng: np.random.Generator) -> None:
-        """Composite the backdrop behind the people: darkened where they shadow the ground
-        (:mod:`synth.ground`, with ``ground.shadows``), blurred by the thin lens (:mod:`synth.lens`,
-        with ``camera.f_number``). Records what it did in ``back.info``."""
+                            outline: np.ndarray, rng: np.random.Generator) -> None:
+        """Composite the backdrop behind the people (``outline``: their hull vertices): darkened where
+        they shadow the ground (:mod:`synth.ground`, with ``ground.shadows``), blurred by the thin
+        lens (:mod:`synth.lens`, with ``camera.f_number``). Records what it did in ``back.info``."""
         from synth import ground, lens
 
         g = self.cfg.ground
@@ -423,7 +424,7 @@ class SampleMaker:
         if backdrop is None:
             backdrop = ground.env_backdrop(camera, back.env, back.rotation, back.scale)
         if g.shadows:
-            pts = np.concatenate([p["outline"] for p in people]).astype(np.float64)
+            pts = outline.astype(np.float64)
             centre = 0.5 * (pts.min(0) + pts.max(0))
             sphere = (centre, float(np.linalg.norm(pts - centre, axis=1).max()) + 0.01)
             ratio, on_ground = ground.shadow_ratio(

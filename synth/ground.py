@@ -279,11 +279,14 @@ class SceneOccluder:
     def __init__(self, mi: Any, scene: Any) -> None:
         self.mi, self.scene = mi, scene
 
+    def _vec(self, a: np.ndarray, kind: Any) -> Any:
+        """(N, 3) NumPy rows as a Dr.Jit ``kind`` (``Point3f``, ``Vector3f``) of N float32 entries."""
+        return kind(*(np.ascontiguousarray(a[:, i], np.float32) for i in range(3)))
+
     def __call__(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
         mi = self.mi
-        o = mi.Point3f(*(np.ascontiguousarray(origins[:, i], np.float32) for i in range(3)))
-        d = mi.Vector3f(*(np.ascontiguousarray(directions[:, i], np.float32) for i in range(3)))
-        return np.asarray(self.scene.ray_test(mi.Ray3f(o, d)), dtype=bool)
+        ray = mi.Ray3f(self._vec(origins, mi.Point3f), self._vec(directions, mi.Vector3f))
+        return np.asarray(self.scene.ray_test(ray), dtype=bool)
 
     def blocked(self, origins: np.ndarray, pool: np.ndarray, samples: int, people_sphere: tuple[np.ndarray, float],
                 seed: int) -> np.ndarray:
@@ -293,11 +296,7 @@ class SceneOccluder:
 
         mi = self.mi
         p, m = len(origins), len(pool)
-
-        def vec(a: np.ndarray, kind: Any) -> Any:
-            return kind(*(np.ascontiguousarray(a[:, i], np.float32) for i in range(3)))
-
-        o_all, d_all = vec(origins, mi.Point3f), vec(pool, mi.Vector3f)
+        o_all, d_all = self._vec(origins, mi.Point3f), self._vec(pool, mi.Vector3f)
         idx = dr.arange(mi.UInt32, p * samples)
         point = idx // samples
         rng = mi.PCG32(size=p * samples, initstate=dr.opaque(mi.UInt64, seed % 2**64), initseq=mi.UInt64(idx))

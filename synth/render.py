@@ -84,8 +84,8 @@ def people_window(camera: Camera, points: np.ndarray, quantum: int = 16, margin:
     """The pixels ``(x0, y0, width, height)`` that can see a person: the box of the projected
     ``points`` (the people's vertices or their hull vertices, ``synth.camera.outline_index``,
     hair included), ``margin`` pixels wider, its sides rounded up to a multiple of ``quantum``
-    pixels (each new window size compiles the path tracer's kernel once, ~0.5 s, and Dr.Jit keeps
-    it), inside the image; the whole image when a point is not in front of the camera.
+    pixels (each new window size compiles the path tracer's kernel once, about 0.4 s, and Dr.Jit
+    keeps it), inside the image; the whole image when a point is not in front of the camera.
 
     Pixel ``i`` spans ``[i, i + 1)`` (centres at ``i + 0.5``) and the film's box filter keeps a
     sample in its pixel, so a sample outside the window cannot see a person: the projection of a
@@ -345,7 +345,6 @@ class PeopleRenderer:
             raise ValueError("a render window needs the environment hidden: build the renderer with backplate=True")
         if not (0 <= x0 and 0 <= y0 and ww > 0 and wh > 0 and x0 + ww <= self.width and y0 + wh <= self.height):
             raise ValueError(f"render window {window} is not inside the {self.width}x{self.height} image")
-        self._window = window
         # The first update of a freshly loaded scene renders a few pixels differently from every
         # later update of the same values (observed; making every scene value opaque at load time
         # does not remove it), so the first frame assigns twice. A trace of the previous image
@@ -356,7 +355,7 @@ class PeopleRenderer:
             if not self._warm:
                 self._textures.clear()  # both warm-up assignments upload everything
                 self._env = None
-            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair)
+            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair, window)
         self._warm = True
         sensors = self.scene.sensors()
         image = np.asarray(mi.TensorXf(mi.render(self.scene, sensor=sensors[0], spp=spp, seed=seed)))
@@ -385,7 +384,7 @@ class PeopleRenderer:
         face[~hit] = -1
         return Frame(rgb=rgb.astype(np.float32), alpha=alpha, hit=hit, position=position, face=face)
 
-    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale, hair=None) -> None:
+    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale, hair=None, window=None) -> None:
         mi, p = self.mi, self.params
         import drjit as dr
 
@@ -417,10 +416,11 @@ class PeopleRenderer:
         c, s = math.cos(env_rotation), math.sin(env_rotation)
         rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
         p["env.to_world"] = mi.AffineTransform4f(rot)
-        x0, y0, ww, wh = self._window
-        if (tuple(p["sensor.film.crop_offset"]), tuple(p["sensor.film.crop_size"])) != ((x0, y0), (ww, wh)):
+        if window is not None and window != self._window:
+            x0, y0, ww, wh = window
             p["sensor.film.crop_offset"] = mi.ScalarPoint2u(x0, y0)
             p["sensor.film.crop_size"] = mi.ScalarVector2u(ww, wh)
+            self._window = window
         x_fov, ppx, ppy = sensor_params(camera)
         for name in ("sensor", "label_sensor"):
             p[f"{name}.to_world"] = mi.AffineTransform4f(to_world_matrix(camera))
