@@ -231,13 +231,6 @@ def place_people(footprints: list[tuple[np.ndarray, float]], gap: float, rng: np
 # A worker's state
 
 
-# The path tracer renders only the people's window (synth.render.people_window) in images whose
-# sides are at least this many pixels. Each window size compiles the path tracer's kernel once per
-# machine (about 0.4 s, then kept in ~/.drjit); a 192 px image saves about 25 ms a window, a 64 px
-# one a few ms, which would not repay the compiles of a small run.
-WINDOW_MIN_SIDE = 128
-
-
 class SampleMaker:
     """Everything a worker needs to make samples: model, subjects, poses, backgrounds, scenes."""
 
@@ -262,7 +255,10 @@ class SampleMaker:
             self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
         # Hair is grown on Anny's stand-in people only: user scans carry their own.
         self.hair = cfg.hair.enabled and cfg.pipeline != "raw" and cfg.subjects.source == "anny"
-        self.windowed = min(cfg.camera.width, cfg.camera.height) >= WINDOW_MIN_SIDE
+        # With the backdrop composited, the path tracer renders only the people's window
+        # (synth.render.people_window, passed to the kernel as data: no compile per image).
+        # False renders whole frames (tests and benchmarks compare).
+        self.windowed = True
         self.head_bone = list(m.bone_names).index("head")
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, dict[str, Any]] = {}
@@ -324,14 +320,21 @@ class SampleMaker:
         return bg.Background("default", env, rot, scale, None, {"rotation": rot, "exposure": scale, **info})
 
     def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool) -> PeopleRenderer:
-        key = (tuple(m.key for m in meshes), tuple(t.shape for t in textures), backplate)
+        """The scene for these people's meshes. People of one topology and texture size (every
+        Anny subject; the blsm pipeline always) share one scene of ``people.max`` slots, the
+        unused ones hidden, so a worker compiles its kernels once for any people count; people of
+        several topologies (scans, raw pipeline) get a scene per combination."""
+        slots, shapes = meshes, [t.shape[:2] for t in textures]
+        if len({m.key for m in meshes}) == 1 and len(set(shapes)) == 1:
+            slots, shapes = [meshes[0]] * self.cfg.people.max, [shapes[0]] * self.cfg.people.max
+        key = (tuple(m.key for m in slots), tuple(shapes), backplate)
         r = self._renderers.get(key)
         if r is None:
             if len(self._renderers) >= 4:
                 self._renderers.pop(next(iter(self._renderers)))
             cam, b = self.cfg.camera, self.cfg.background
             r = PeopleRenderer(
-                meshes, [t.shape[:2] for t in textures], cam.width, cam.height,
+                slots, shapes, cam.width, cam.height,
                 env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
                 max_depth=self.cfg.render.max_depth, backplate=backplate,
                 denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
@@ -421,8 +424,9 @@ class SampleMaker:
 
         g = self.cfg.ground
         backdrop = back.backplate
-        if backdrop is None:
-            backdrop = ground.env_backdrop(camera, back.env, back.rotation, back.scale)
+        if backdrop is None:  # the environment seen by the camera, evaluated by the scene's own envmap
+            backdrop = ground.emitter_backdrop(r.mi, r.environment, camera,
+                                               ground.backdrop_supersampling(camera, back.env.shape[1]))
         if g.shadows:
             pts = outline.astype(np.float64)
             centre = 0.5 * (pts.min(0) + pts.max(0))

@@ -5,7 +5,9 @@ environment map that lights the scene (and shows as the background, or is hidden
 is composited behind the people), and two sensors that always share one OpenCV camera:
 
 - ``sensor`` renders the image with the path tracer, ``spp`` samples per pixel (with ``denoise``,
-  nested in the AOV integrator for albedo and normal, and denoised by :mod:`synth.denoise`);
+  nested in the AOV integrator for albedo and normal, and denoised by :mod:`synth.denoise`), over
+  the whole image or only the people's window (:func:`trace_window`: the window is data of one
+  kernel, so a new window compiles nothing);
 - ``label_sensor`` renders the AOV integrator (``depth``, ``position``, ``prim_index``) with one sample at
   every pixel centre (a non-jittered stratified sampler and a box filter), so every label pixel is
   the first hit of the ray through ``(u + 0.5, v + 0.5)``.
@@ -28,6 +30,11 @@ import numpy as np
 from blsm.camera import Camera
 from blsm.mesh import face_incidence, vertex_normals
 from blsm.mitsuba_util import load_mitsuba, resolve_variant, sensor_params, to_world_matrix
+
+
+# Where an unused person slot's vertices all go (:meth:`PeopleRenderer._hide`): under the ground
+# y = 0 that every person stands on and every camera looks down on or across.
+HIDDEN_POINT = (0.0, -10.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -80,12 +87,13 @@ def _hair_bsdf(variant: str) -> Any:
         "type": "principled", "base_color": colour, "roughness": 0.45, "specular": 0.35}})  # fmt: skip
 
 
-def people_window(camera: Camera, points: np.ndarray, quantum: int = 16, margin: int = 1) -> tuple[int, int, int, int]:
+def people_window(camera: Camera, points: np.ndarray, quantum: int = 1, margin: int = 1) -> tuple[int, int, int, int]:
     """The pixels ``(x0, y0, width, height)`` that can see a person: the box of the projected
     ``points`` (the people's vertices or their hull vertices, ``synth.camera.outline_index``,
     hair included), ``margin`` pixels wider, its sides rounded up to a multiple of ``quantum``
-    pixels (each new window size compiles the path tracer's kernel once, about 0.4 s, and Dr.Jit
-    keeps it), inside the image; the whole image when a point is not in front of the camera.
+    pixels, inside the image; the whole image when a point is not in front of the camera.
+    (:func:`trace_window` takes the window as data, so its size costs no compile: no rounding
+    is needed.)
 
     Pixel ``i`` spans ``[i, i + 1)`` (centres at ``i + 0.5``) and the film's box filter keeps a
     sample in its pixel, so a sample outside the window cannot see a person: the projection of a
@@ -108,6 +116,63 @@ def people_window(camera: Camera, points: np.ndarray, quantum: int = 16, margin:
         out.append((start, size))
     (x0, ww), (y0, wh) = out
     return x0, y0, ww, wh
+
+
+def trace_window(
+    mi: Any, scene: Any, sensor: Any, integrator: Any, window: tuple[int, int, int, int], spp: int, seed: int
+) -> np.ndarray:
+    """Path-trace the pixels of ``window`` ``(x0, y0, width, height)`` of ``sensor``'s film with
+    ``integrator``: (height, width, C) float32, the film's channels (R, G, B, A, then the
+    integrator's AOVs) averaged over ``spp`` samples a pixel.
+
+    This is ``SamplingIntegrator::render`` (Mitsuba 3.9, ``src/render/integrator.cpp``) for a box
+    filter and an uncropped film, with the window's offset and size, the samples per pixel's
+    divisor and the seed entering the kernel as opaque values instead of literals: Mitsuba bakes a
+    film crop's offset and size into the path tracer's kernel, so each new window compiled a new
+    one (0.4 s on a CPU, 0.7 s on a GPU, per image). Sample ``k`` of wavefront index ``i`` goes to
+    pixel ``i // spp`` of the window in row-major order and is seeded as ``mi.render`` seeds it, so
+    over the whole image the samples are those of ``mi.render`` with the same seed. A sample stays in
+    its pixel (box filter), so a pixel's value is the plain mean of its samples; no ray leaves the
+    window.
+    """
+    import drjit as dr
+
+    film = sensor.film()
+    width, height = (int(v) for v in film.size())
+    if tuple(int(v) for v in film.crop_size()) != (width, height) or any(int(v) for v in film.crop_offset()):
+        raise ValueError("trace_window needs an uncropped film")
+    x0, y0, ww, wh = (int(v) for v in window)
+    sampler = sensor.sampler()
+    sampler.set_sample_count(spp)
+    spp = int(sampler.sample_count())
+    n = ww * wh * spp
+    sampler.set_samples_per_wavefront(spp)
+    sampler.seed(dr.opaque(mi.UInt32, seed % 2**32), n)
+    pixel = dr.arange(mi.UInt32, n) // dr.opaque(mi.UInt32, spp)
+    row = pixel // dr.opaque(mi.UInt32, ww)
+    col = pixel - row * dr.opaque(mi.UInt32, ww)
+    pos = mi.Point2f(mi.Float(col + dr.opaque(mi.UInt32, x0)), mi.Float(row + dr.opaque(mi.UInt32, y0)))
+    sample_pos = pos + sampler.next_2d()
+    time = mi.Float(sensor.shutter_open())
+    if sensor.shutter_open_time() > 0.0:
+        time += sampler.next_1d() * sensor.shutter_open_time()
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Point2f(0.5)
+    ray, weight = sensor.sample_ray_differential(
+        time, mi.Float(0.0), sample_pos * mi.ScalarVector2f(1.0 / width, 1.0 / height), aperture
+    )
+    if ray.has_differentials:
+        ray.scale_differential(spp**-0.5)
+    spec, valid, aovs = integrator.sample(scene, sampler, ray, None, mi.Bool(True))  # no participating media here
+    rgb = weight * spec
+    channels = [rgb.x, rgb.y, rgb.z]
+    if mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
+        channels.append(dr.select(valid, 1.0, 0.0))
+    channels += list(aovs)
+    dr.eval(channels)  # one path-tracing kernel for every channel, then a sum per pixel of each
+    sums = [dr.block_sum(c, spp) for c in channels]
+    dr.eval(sums)
+    out = np.stack([np.asarray(c) for c in sums], axis=-1).reshape(wh, ww, len(sums))
+    return out * np.float32(1.0 / spp)
 
 
 @dataclass
@@ -258,6 +323,7 @@ class PeopleRenderer:
                 scene.update(shapes)
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
+        self.environment = self.scene.environment()  # the envmap (synth.ground.emitter_backdrop)
         self.label_integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth,pos:position,pi:prim_index"})
         # A second, unused emitter instance. With a single emitter alive in the process, Dr.Jit
         # devirtualises the emitter calls and inlines the environment map into the path tracer's
@@ -266,10 +332,25 @@ class PeopleRenderer:
         # reports the bare render with and without it.
         self.spare_emitter = mi.load_dict({"type": "constant"})
         self._warm = False
-        self._window = (0, 0, width, height)  # the path tracer's film crop window now
         self._hair_inc = None
+        self._hidden: set[int] = set()  # slots collapsed out of sight (:meth:`_hide`)
         self._textures: dict[int, np.ndarray] = {}  # the texture array each slot shows now
         self._env: np.ndarray | None = None  # the environment array uploaded now
+
+    def _hide(self, i: int) -> None:
+        """Collapse slot ``i``'s meshes (person and hair) to one point under the ground: zero-area
+        triangles, which no ray hits (no camera, shadow ray or label ray sees them). Uploaded once
+        until the slot shows a person again."""
+        if i in self._hidden:
+            return
+        mi, p = self.mi, self.params
+        names = [f"person_{i}"] + ([f"hair_{i}"] if self.hair else [])
+        for name in names:
+            key = f"group_{i}.{name}" if self.instanced else name
+            nv = len(p[f"{key}.vertex_positions"]) // 3
+            p[f"{key}.vertex_positions"] = mi.Float(np.tile(np.array(HIDDEN_POINT, np.float32), nv))
+            p[f"{key}.vertex_normals"] = mi.Float(np.tile(np.array([0.0, 1.0, 0.0], np.float32), nv))
+        self._hidden.add(i)
 
     def _hair_mesh(self, i: int) -> Any:
         from synth.hair import hair_faces, num_vertices
@@ -310,8 +391,10 @@ class PeopleRenderer:
         """Render one frame.
 
         Args:
-            vertices: per person slot, (V, 3) world positions of the person's mesh.
-            textures: per person slot, (H, W, 3) linear albedo float32 (row 0 = top of the image).
+            vertices: per person, (V, 3) world positions of the person's mesh, one person per slot
+                from the first; the renderer's other slots are hidden (:meth:`_hide`), so that one
+                scene, and so one set of kernels, serves any number of people up to its slots.
+            textures: per person, (H, W, 3) linear albedo float32 (row 0 = top of the image).
             camera: the OpenCV camera (its size must be the renderer's).
             env: (He, We, 3) linear RGB latitude-longitude environment (lights the scene).
             env_rotation: radians about +Y.
@@ -320,24 +403,25 @@ class PeopleRenderer:
                 built with ``backplate=True``), or None to see the environment.
             spp: samples per pixel of the image.
             seed: the path tracer's seed.
-            hair: per person slot, the posed hair's (H, 3) vertices and (H, 3) linear colours (the
+            hair: per person, the posed hair's (H, 3) vertices and (H, 3) linear colours (the
                 renderer must have been built with ``hair=True``); a hair hit is reported by its
                 face index in the hair (``Frame.face``), which :func:`synth.labels.assign_hits`
                 tells from the body's faces by the hit position.
             window: ``(x0, y0, width, height)`` pixels that hold every person (:func:`people_window`):
-                the path tracer renders only these (Mitsuba's film crop window; the samples of a
-                pixel are those of the full render's distribution, another random stream), and
-                the image is 0 with alpha 0 elsewhere. Only where the environment is hidden
+                the path tracer renders only these (:func:`trace_window`; the samples of a pixel
+                are those of the full render's distribution, another random stream), and the
+                image is 0 with alpha 0 elsewhere. Only where the environment is hidden
                 (``backplate=True``), since outside the window nothing would show it. The label
                 pass always covers the whole image.
         """
         mi = self.mi
         if (camera.width, camera.height) != (self.width, self.height):
             raise ValueError(f"camera is {camera.width}x{camera.height}, renderer {self.width}x{self.height}")
-        if len(vertices) != len(self.meshes) or len(textures) != len(self.meshes):
-            raise ValueError(f"need {len(self.meshes)} meshes and textures, got {len(vertices)}, {len(textures)}")
-        if (hair is not None) != self.hair or (hair is not None and len(hair) != len(self.meshes)):
-            raise ValueError(f"this renderer {'needs' if self.hair else 'has no'} a hair per person slot")
+        n = len(vertices)
+        if not 1 <= n <= len(self.meshes) or len(textures) != n:
+            raise ValueError(f"need 1 to {len(self.meshes)} meshes and as many textures, got {n}, {len(textures)}")
+        if (hair is not None) != self.hair or (hair is not None and len(hair) != n):
+            raise ValueError(f"this renderer {'needs' if self.hair else 'has no'} a hair per person")
         full = (0, 0, self.width, self.height)
         window = full if window is None else tuple(int(w) for w in window)
         x0, y0, ww, wh = window
@@ -355,10 +439,10 @@ class PeopleRenderer:
             if not self._warm:
                 self._textures.clear()  # both warm-up assignments upload everything
                 self._env = None
-            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair, window)
+            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair)
         self._warm = True
         sensors = self.scene.sensors()
-        image = np.asarray(mi.TensorXf(mi.render(self.scene, sensor=sensors[0], spp=spp, seed=seed)))
+        image = trace_window(mi, self.scene, sensors[0], self.scene.integrator(), window, spp, seed)
         aov = np.asarray(
             mi.TensorXf(mi.render(self.scene, sensor=sensors[1], integrator=self.label_integrator, spp=1))
         )
@@ -384,7 +468,7 @@ class PeopleRenderer:
         face[~hit] = -1
         return Frame(rgb=rgb.astype(np.float32), alpha=alpha, hit=hit, position=position, face=face)
 
-    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale, hair=None, window=None) -> None:
+    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale, hair=None) -> None:
         mi, p = self.mi, self.params
         import drjit as dr
 
@@ -396,11 +480,14 @@ class PeopleRenderer:
         for i, (m, v, tex) in enumerate(zip(self.meshes, vertices, textures)):
             normals = vertex_normals(np.asarray(v, np.float32), m.faces, m.incidence)
             key = f"group_{i}.person_{i}" if self.instanced else f"person_{i}"
+            self._hidden.discard(i)
             p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(v[m.split_vertex]).reshape(-1))
             p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
             if self._textures.get(i) is not tex:  # uploading 1024^2 texels costs ~3 ms
                 p[f"{key}.bsdf.reflectance.data"] = mi.TensorXf(np.ascontiguousarray(tex, dtype=np.float32))
                 self._textures[i] = tex
+        for i in range(len(vertices), len(self.meshes)):
+            self._hide(i)
         for i, (v, colours) in enumerate(hair or []):
             from synth.hair import hair_faces
 
@@ -416,11 +503,6 @@ class PeopleRenderer:
         c, s = math.cos(env_rotation), math.sin(env_rotation)
         rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
         p["env.to_world"] = mi.AffineTransform4f(rot)
-        if window is not None and window != self._window:
-            x0, y0, ww, wh = window
-            p["sensor.film.crop_offset"] = mi.ScalarPoint2u(x0, y0)
-            p["sensor.film.crop_size"] = mi.ScalarVector2u(ww, wh)
-            self._window = window
         x_fov, ppx, ppy = sensor_params(camera)
         for name in ("sensor", "label_sensor"):
             p[f"{name}.to_world"] = mi.AffineTransform4f(to_world_matrix(camera))

@@ -224,9 +224,45 @@ def test_two_workers_make_the_same_bytes_as_one(tiny, tmp_path):
     assert man["complete"] and _shard_digests(out) == _shard_digests(tiny)
 
 
-def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny, monkeypatch):
-    """With the backdrop composited (shadows, the default), images of at least WINDOW_MIN_SIDE px
-    path-trace only the people's window: the same sample made both ways has the same labels, and
+def test_a_warm_worker_compiles_no_kernel_for_new_samples(tiny):
+    """Issue 34: after its first samples, a worker making new samples (new people count, pose,
+    camera, window, sky, seed) launches only kernels it has compiled already: Dr.Jit's kernel
+    history shows every JIT kernel as an in-memory cache hit. 128 px, so the people's window is
+    traced (its offset and size are the kernel's data, not literals) and shadows are on; one or
+    two people (one scene of two slots)."""
+    import drjit as dr
+
+    import synth.generate as gen
+    from blsm.mitsuba_util import resolve_variant
+    from synth.shards import sample_rng
+
+    cfg = dataclasses.replace(TINY, camera=dataclasses.replace(TINY.camera, width=128, height=128))
+    assert cfg.ground.shadows and cfg.hair.enabled
+    maker = gen.SampleMaker(cfg, tiny, resolve_variant(None), threads=0)
+    for i in (1000, 1001):  # warm-up: the first sample compiles every kernel
+        maker.make(i, sample_rng(cfg.seed, i))
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # clears it
+        people, windows = set(), set()
+        for i in range(2000, 2008):
+            doc = fmt.decode_sample(maker.make(i, sample_rng(cfg.seed, i)))["json"]
+            people.add(len(doc["people"]))
+            windows.add(tuple(np.round(np.asarray(doc["people"][0]["box_full"]))))
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert people == {1, 2} and len(windows) == 8  # the samples do vary what used to compile
+    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+    assert len(jit) >= 8 * 3  # path tracer, label pass and shadow catcher, per sample at least
+    compiled = [(k["hash"], k["size"]) for k in jit if not k["cache_hit"]]
+    assert compiled == [], f"{len(compiled)} kernels compiled for new samples"
+
+
+def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny):
+    """With the backdrop composited (shadows, the default), the path tracer traces only the
+    people's window (SampleMaker.windowed): the same sample made both ways has the same labels, and
     the image agrees up to Monte Carlo noise (another random stream for the people; the shadow
     catcher skips the pixels a person covers fully, which the noise moves by a few)."""
     import synth.generate as gen
@@ -235,9 +271,9 @@ def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny, 
 
     cfg = dataclasses.replace(TINY, render=RenderConfig(spp=36))
     made = {}
-    for name, side in (("window", 0), ("whole", 10**9)):
-        monkeypatch.setattr(gen, "WINDOW_MIN_SIDE", side)
+    for name, windowed in (("window", True), ("whole", False)):
         maker = gen.SampleMaker(cfg, tiny, resolve_variant(None), threads=0)
+        maker.windowed = windowed
         made[name] = [fmt.decode_sample(maker.make(1, sample_rng(cfg.seed, 1)))]
     for a, b in zip(made["window"], made["whole"]):
         for count in ("ground_pixels", "shadowed_pixels"):

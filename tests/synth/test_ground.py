@@ -192,3 +192,27 @@ def test_the_scene_occluders_one_kernel_estimate_is_the_numpy_estimate():
     assert kernel.max() > 0.85 and numpy_.max() > 0.85  # the shadow fades away from the disc
     again, _ = shadow_ratio(occluder, cam, env, 0.0, sphere, np.random.default_rng(0), samples=256)
     assert np.array_equal(kernel, again)  # the seed fixes it
+
+
+def test_the_emitter_backdrop_is_the_numpy_backdrop():
+    """synth.ground.emitter_backdrop (Mitsuba's envmap evaluated in one kernel, what the generator
+    uses) against env_backdrop (NumPy, which follows Mitsuba's lookup) on a random map, rotated and
+    scaled, with one and with 2 x 2 rays a pixel."""
+    from blsm.mitsuba_util import load_mitsuba, resolve_variant
+    from synth.ground import emitter_backdrop, env_backdrop
+
+    mi = load_mitsuba(resolve_variant(None))
+    env = np.random.default_rng(3).uniform(0.0, 2.0, (64, 128, 3)).astype(np.float32)
+    rot, scale = 0.7, 1.6
+    c, s = np.cos(rot), np.sin(rot)
+    to_world = mi.ScalarTransform4f(np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]]))
+    scene = mi.load_dict({"type": "scene", "env": {"type": "envmap", "bitmap": mi.Bitmap(env), "scale": scale,
+                                                   "to_world": to_world}})
+    base = look_at_camera(np.array([0.3, 1.6, 4.0]), np.array([0.0, 1.0, 0.0]), width=40, height=30)
+    cam = Camera(K=np.array([[30.0, 0.0, 21.0], [0.0, 32.0, 14.5], [0.0, 0.0, 1.0]]), R=base.R, t=base.t, width=40, height=30)
+    for ss in (1, 2):
+        want = env_backdrop(cam, env, rot, scale, supersample=ss)
+        got = emitter_backdrop(mi, scene.environment(), cam, ss)
+        assert got.shape == want.shape == (30, 40, 3)
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-4)  # float32 directions here, float64 there
+    assert np.abs(emitter_backdrop(mi, scene.environment(), cam, 1) - env_backdrop(cam, env, rot + 0.3, scale, 1)).max() > 0.1

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The generator with Mitsuba's cuda_ad_rgb on a lent GPU machine (issue 34), in one call:
+#
+#     bash benchmarks/gpu_generate.sh          # from the repo root, on the GPU machine
+#
+# Needs out/gpu/carry and out/gpu/extract.sh: the trimmed Mitsuba, Dr.Jit, OpenImageIO, kornia and the
+# pre-made subjects of ../shared/tools/gpu-generate (build_carry.py without the project: the run
+# carries the working tree itself). Steps, each under a timeout:
+#   1. `synth generate -` (embedded defaults, cuda_ad_rgb, 8 workers, cold kernel cache), validated,
+#      a contact sheet ($OUT/preview.png);
+#   2. benchmarks/bench_generate.py: fresh samples per run, cold then warm kernel caches, 4/8/16
+#      workers, the bare render beside them; nvidia-smi sampled every 0.5 s ($OUT/smi.csv).
+# Results in $OUT (default /tmp/gpu_out): log.txt, gen.jsonl, benchmarks.md (the section), smi.csv.
+set -u
+OUT=${OUT:-/tmp/gpu_out}
+WORKERS=${GPU_WORKERS:-"4 8 16"}
+RUN_S=${GPU_RUN_S:-20}
+mkdir -p "$OUT"
+exec > >(tee "$OUT/log.txt") 2>&1
+t0=$SECONDS
+eval "$(bash out/gpu/extract.sh /tmp/gpu_work)" || exit 3
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+echo "cpus $(nproc); $(python3 -V)"
+SUBJ=$GPU_WORK/premade/subjects
+
+echo "=== 1. synth generate (cold kernel cache, 8 workers) t=$((SECONDS - t0))s ==="
+D=/tmp/gpu_cli
+rm -rf "$D" /tmp/home_cli && mkdir -p "$D" /tmp/home_cli && cp -r "$SUBJ" "$D/"
+s=$SECONDS
+HOME=/tmp/home_cli timeout 150 python3 -m synth.cli generate - --out "$D" --num 48 --workers 8 --set render.variant=cuda_ad_rgb
+echo "cli generate rc=$? in $((SECONDS - s)) s (48 images, start-up and compiles included)"
+timeout 90 python3 -m synth.cli validate "$D"
+echo "validate rc=$?"
+timeout 40 python3 -m synth.cli preview "$D" --out "$OUT/preview.png" --count 16 || true
+
+echo "=== 2. bench_generate t=$((SECONDS - t0))s ==="
+nvidia-smi --query-gpu=timestamp,utilization.gpu,memory.used --format=csv,noheader -lms 500 >"$OUT/smi.csv" &
+smi=$!
+# shellcheck disable=SC2086
+timeout 330 python3 benchmarks/bench_generate.py --variant cuda_ad_rgb --subjects "$SUBJ" --workers $WORKERS \
+    --images 2400 --max-seconds "$RUN_S" --warmup 48 --bare 32 --json "$OUT/gen.jsonl" --out "$OUT/benchmarks.md"
+echo "bench rc=$?"
+kill "$smi" 2>/dev/null
+echo "done in $((SECONDS - t0)) s"
