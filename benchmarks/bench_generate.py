@@ -33,6 +33,7 @@ Without ``--subjects`` the subjects of the embedded defaults are made first in t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
 import json
@@ -49,45 +50,59 @@ from pathlib import Path
 from report import write_section  # benchmarks/report.py (run as a script)
 
 
-class _Stop(Exception):
-    pass
-
-
 def _gaps(marks: list[float]) -> dict[str, float]:
     gaps = sorted(b - a for a, b in zip(marks, marks[1:]))
     pick = lambda q: round(1e3 * gaps[min(len(gaps) - 1, int(q * (len(gaps) - 1)))], 1)  # noqa: E731
     return {"gap_ms_p50": pick(0.5), "gap_ms_p90": pick(0.9), "gap_ms_max": round(1e3 * gaps[-1], 1)}
 
 
+# The run in a process group of its own: `generate` prints each image's time; the benchmark kills
+# the whole group when it has seen enough (a pool terminated while its workers are busy on a GPU
+# could hang the caller; a killed group cannot).
+_CHILD = """
+import json, sys, time
+from pathlib import Path
+from synth.config import GeneratorConfig, from_dict
+from synth.generate import generate
+cfg = from_dict(GeneratorConfig, json.loads(sys.argv[1]))
+print("START", time.time(), flush=True)
+generate(cfg, Path(sys.argv[2]), workers=int(sys.argv[3]), progress=False, part=(int(sys.argv[4]), int(sys.argv[5])),
+         on_image=lambda n: print("IMG", time.time(), flush=True))
+print("DONE", time.time(), flush=True)
+"""
+
+
 def run_generator(cfg, work: Path, subjects: Path, workers: int, part: tuple[int, int], cache_home: Path,
-                  warmup: int, max_seconds: float) -> dict:
-    """One ``generate`` run of ``workers`` processes on part ``part``, its workers' Dr.Jit cache in
-    ``cache_home``; the images' arrival times."""
-    from synth.generate import generate
+                  warmup: int, max_seconds: float, images: int) -> dict:
+    """One ``generate`` run of ``workers`` processes on part ``part`` (in a child process), its
+    workers' Dr.Jit cache in ``cache_home``; the images' arrival times."""
+    import signal
+    import subprocess
+
+    from synth.generate import _cfg_json
 
     out = work / f"run_w{workers}_part{part[0]}"
     shutil.rmtree(out, ignore_errors=True)
     out.mkdir(parents=True)
     shutil.copytree(subjects, out / "subjects")
-    old_home = os.environ.get("HOME")
-    os.environ["HOME"] = str(cache_home)  # read by the spawned workers' Dr.Jit
+    env = dict(os.environ, HOME=str(cache_home))  # read by the workers' Dr.Jit
+    t0 = time.time()
+    proc = subprocess.Popen([sys.executable, "-c", _CHILD, json.dumps(_cfg_json(cfg)), str(out), str(workers),
+                             str(part[0]), str(part[1])], stdout=subprocess.PIPE, text=True, env=env,
+                            start_new_session=True)
     marks: list[float] = []
-
-    def on_image(n: int) -> None:
-        marks.append(time.perf_counter())
-        if marks[-1] - marks[0] > max_seconds:
-            raise _Stop
-
-    t0 = time.perf_counter()
     try:
-        generate(cfg, out, workers=workers, progress=False, on_image=on_image, part=part)
-    except _Stop:
-        pass
+        for line in proc.stdout:
+            if line.startswith("IMG "):
+                marks.append(float(line.split()[1]))
+                if marks[-1] - marks[0] > max_seconds or len(marks) >= images:
+                    break
+            elif line.startswith("DONE"):
+                break
     finally:
-        if old_home is None:
-            os.environ.pop("HOME", None)
-        else:
-            os.environ["HOME"] = old_home
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
     shutil.rmtree(out, ignore_errors=True)
     warm = max(warmup, 3 * workers)
     rec = {"workers": workers, "part": f"{part[0]}/{part[1]}", "images": len(marks)}
@@ -154,11 +169,13 @@ def main() -> int:
     ap.add_argument("--subjects", type=Path, help="a subjects/ folder made for this config (default: make them)")
     ap.add_argument("--variant", default="", help="Mitsuba variant (default: the generator's choice)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--images", type=int, default=120, help="images per run at most")
+    ap.add_argument("--images", type=int, default=120, help="images per run at most (a run stops at the first of this and --max-seconds)")
     ap.add_argument("--max-seconds", type=float, default=120.0, help="a run stops this long after its first image")
     ap.add_argument("--warmup", type=int, default=8, help="images before the steady clock starts (at least 3 per worker)")
     ap.add_argument("--bare", type=int, default=16, help="fresh scenes of the bare pass")
     ap.add_argument("--no-cold", action="store_true", help="warm runs only")
+    ap.add_argument("--part-offset", type=int, default=0,
+                    help="skip this many parts (another invocation's samples, e.g. an A/B against another checkout)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
 
@@ -174,7 +191,7 @@ def main() -> int:
     per_part = -(-args.images // shard) * shard
     # Cold for the first worker count (the first run of a fresh machine), warm for every count.
     runs = ([] if args.no_cold else [(args.workers[0], "cold")]) + [(w, "warm") for w in args.workers]
-    parts = len(runs) + 1  # one more for the bare pass
+    parts = args.part_offset + len(runs) + 1  # one more for the bare pass
     cfg = dataclasses.replace(cfg, num=per_part * parts)
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_generate_"))
     work.mkdir(parents=True, exist_ok=True)
@@ -194,10 +211,15 @@ def main() -> int:
         if cache == "cold" or home is None:
             home = work / f"home_{r}"
             home.mkdir()
-        rec = run_generator(cfg, work, subjects, workers, (r + 1, parts), home, args.warmup, args.max_seconds)
+        rec = run_generator(cfg, work, subjects, workers, (args.part_offset + r + 1, parts), home, args.warmup, args.max_seconds,
+                            args.images)
         rec.update(kind="generate", cache=cache, kernels_cached=len(list((home / ".drjit").glob("*"))))
         records.append(rec)
         print("[bench_generate] " + json.dumps(rec), flush=True)
+    if args.bare <= 0:  # no bare pass (e.g. timing an older checkout, which lacks trace_window)
+        if args.json:
+            args.json.write_text("".join(json.dumps(r) + "\n" for r in records))
+        return 0
     # The bare pass: its own process on the warm cache, another part's fresh samples.
     dataset = work / "bare"
     shutil.rmtree(dataset, ignore_errors=True)
@@ -212,8 +234,12 @@ def main() -> int:
     if args.json:
         args.json.write_text("".join(json.dumps(r) + "\n" for r in records))
     if args.out:
-        write_section(args.out, "generate", f"Generator on fresh samples ({'GPU' if 'cuda' in variant else 'CPU'})",
-                      "benchmarks/bench_generate.py", _report(cfg, variant, records, args, cpus))
+        gpu = "cuda" in variant
+        write_section(args.out, f"generate-{'gpu' if gpu else 'cpu'}", f"Generator on fresh samples ({'GPU' if gpu else 'CPU'})",
+                      "benchmarks/bench_generate.py", _report(cfg, variant, records, args, cpus),
+                      command=None if not gpu else "`bash benchmarks/gpu_generate.sh` on a lent GPU machine (runs "
+                      f"`python benchmarks/bench_generate.py --variant {variant} --workers {' '.join(map(str, args.workers))}"
+                      f"{' --no-cold' if args.no_cold else ''} ...`)")
     if args.work is None:
         shutil.rmtree(work, ignore_errors=True)
     return 0

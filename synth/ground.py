@@ -132,31 +132,29 @@ def env_backdrop(camera: Camera, env: np.ndarray, rotation: float, scale: float,
 
 def emitter_backdrop(mi: Any, emitter: Any, camera: Camera, supersample: int) -> np.ndarray:
     """(H, W, 3) what :func:`env_backdrop` computes, evaluated by the scene's own environment
-    ``emitter`` (Mitsuba's ``envmap``, with the image's map, rotation and scale already set) in one
-    Dr.Jit kernel: the same ``supersample``^2 stratified rays a pixel, the same radiance the path
-    tracer's escaped rays see. The camera enters as data (no compile per image); the pixel
-    directions are float32 here (NumPy's are float64), which moves a value by about 1e-6."""
+    ``emitter`` (Mitsuba's ``envmap``, with the image's map, rotation and scale already set) in
+    Dr.Jit: the same ``supersample``^2 stratified rays a pixel, the same radiance the path tracer's
+    escaped rays see. The camera and the sub-pixel offsets enter as data, one launch per offset, so
+    no camera or supersampling count compiles a kernel; the pixel directions are float32 here
+    (NumPy's are float64), which moves a value by about 1e-5 of it."""
     import drjit as dr
 
     w, h, s = camera.width, camera.height, int(supersample)
     m = (camera.R.T @ np.linalg.inv(camera.K)).astype(np.float32)  # pixel (u, v, 1) -> world direction
     mo = [dr.opaque(mi.Float, float(x)) for x in m.reshape(-1)]
-    idx = dr.arange(mi.UInt32, w * h * s * s)
-    pixel, sub = idx // dr.opaque(mi.UInt32, s * s), idx % dr.opaque(mi.UInt32, s * s)
+    pixel = dr.arange(mi.UInt32, w * h)
     row = pixel // dr.opaque(mi.UInt32, w)
-    col = pixel - row * dr.opaque(mi.UInt32, w)
-    step = dr.opaque(mi.Float, 1.0 / s)
-    u = mi.Float(col) + (mi.Float(sub % dr.opaque(mi.UInt32, s)) + 0.5) * step
-    v = mi.Float(row) + (mi.Float(sub // dr.opaque(mi.UInt32, s)) + 0.5) * step
-    d = mi.Vector3f(mo[0] * u + mo[1] * v + mo[2], mo[3] * u + mo[4] * v + mo[5], mo[6] * u + mo[7] * v + mo[8])
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    si.wi = -dr.normalize(d)
-    rad = emitter.eval(si)
-    chans = [rad.x, rad.y, rad.z]
-    dr.eval(chans)
-    sums = [dr.block_sum(c, s * s) for c in chans]
-    dr.eval(sums)
-    return np.stack([np.asarray(c) for c in sums], axis=-1).reshape(h, w, 3) * np.float32(1.0 / (s * s))
+    col = mi.Float(pixel - row * dr.opaque(mi.UInt32, w))
+    row = mi.Float(row)
+    total = np.zeros((h * w, 3), np.float64)
+    for k in range(s * s):
+        u = col + dr.opaque(mi.Float, (k % s + 0.5) / s)
+        v = row + dr.opaque(mi.Float, (k // s + 0.5) / s)
+        d = mi.Vector3f(mo[0] * u + mo[1] * v + mo[2], mo[3] * u + mo[4] * v + mo[5], mo[6] * u + mo[7] * v + mo[8])
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.wi = -dr.normalize(d)
+        total += np.asarray(mi.TensorXf(dr.ravel(emitter.eval(si)), shape=(h * w, 3)))
+    return (total / (s * s)).astype(np.float32).reshape(h, w, 3)
 
 
 _CDF_CACHE: list[tuple[np.ndarray, np.ndarray]] = []  # (env, its cdf), the last few environments

@@ -256,8 +256,10 @@ def test_a_warm_worker_compiles_no_kernel_for_new_samples(tiny):
     assert people == {1, 2} and len(windows) == 8  # the samples do vary what used to compile
     jit = [k for k in history if k["type"] == dr.KernelType.JIT]
     assert len(jit) >= 8 * 3  # path tracer, label pass and shadow catcher, per sample at least
-    compiled = [(k["hash"], k["size"]) for k in jit if not k["cache_hit"]]
-    assert compiled == [], f"{len(compiled)} kernels compiled for new samples"
+    # In memory: neither compiled now nor loaded from Dr.Jit's disk cache (which another process,
+    # or an earlier run over these samples, may have filled).
+    new = [(k["hash"], k["size"]) for k in jit if not k["cache_hit"] or k["cache_disk"]]
+    assert new == [], f"{len(new)} kernels compiled or loaded for new samples"
 
 
 def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny):
