@@ -23,10 +23,15 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -m "not slow"
 
-# Long: the generator part makes about 2000 images (about 40 minutes on 2 cores); the recovery part
-# needs the validation set (made if missing, about 1 minute).
+# Long: the generator part makes about 2000 images (about 40 minutes on 2 cores); the fresh-sample
+# runs (bench_generate: cold and warm kernel caches, 2 and 1 workers, the bare render beside) about
+# 6 minutes; the recovery part needs the validation set (made if missing, about 1 minute). The GPU
+# rows come from benchmarks/gpu_generate.sh on a lent GPU machine.
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_forward.py --out docs/benchmarks.md
+	$(BIN)/python benchmarks/bench_generate.py --workers 2 1 --images 200 --warmup 10 --bare 24 --out docs/benchmarks.md
+	$(BIN)/synth generate - --out out/demo/dataset --num 64 --workers 2 --resume --replace-stale
+	$(BIN)/python benchmarks/bench_encoders.py --dataset out/demo/dataset --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_synth.py --out docs/benchmarks.md
 	test -f out/data/val/manifest.json || $(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
