@@ -3,9 +3,9 @@
 #
 #     bash benchmarks/gpu_generate.sh          # from the repo root, on the GPU machine
 #
-# Needs out/gpu/carry and out/gpu/extract.sh: the trimmed Mitsuba, Dr.Jit, OpenImageIO, kornia and the
-# pre-made subjects of ../shared/tools/gpu-generate (build_carry.py without the project: the run
-# carries the working tree itself). Steps, each under a timeout:
+# Needs out/gpu/carry (carried with the call: `carry: ["out/gpu/carry"]`): the trimmed Mitsuba, Dr.Jit,
+# OpenImageIO, kornia and the pre-made subjects made by ../shared/tools/gpu-generate/build_carry.py, its
+# project.tar.xz deleted (the call carries the working tree itself); benchmarks/gpu_extract.sh unpacks it. Steps, each under a timeout:
 #   1. `synth generate -` (embedded defaults, cuda_ad_rgb, 8 workers, cold kernel cache), validated,
 #      a contact sheet ($OUT/preview.png);
 #      (GPU_CLI=0 skips it);
@@ -19,7 +19,7 @@ RUN_S=${GPU_RUN_S:-20}
 mkdir -p "$OUT"
 exec > >(tee "$OUT/log.txt") 2>&1
 t0=$SECONDS
-eval "$(bash out/gpu/extract.sh /tmp/gpu_work)" || exit 3
+eval "$(bash benchmarks/gpu_extract.sh /tmp/gpu_work)" || exit 3
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 echo "cpus $(nproc); $(python3 -V)"
 SUBJ=$GPU_WORK/premade/subjects
