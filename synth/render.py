@@ -167,7 +167,9 @@ def trace_window(
     channels = [rgb.x, rgb.y, rgb.z]
     if mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
         channels.append(dr.select(valid, 1.0, 0.0))
-    channels += list(aovs)
+    # The AOV integrator repeats its nested integrator's R, G, B, A as the AOVs "image.*"; the film's
+    # output leaves those out (they are its base channels), and so does this.
+    channels += [a for name, a in zip(integrator.aov_names(), aovs) if not name.startswith("image.")]
     dr.eval(channels)  # one path-tracing kernel for every channel, then a sum per pixel of each
     sums = [dr.block_sum(c, spp) for c in channels]
     dr.eval(sums)

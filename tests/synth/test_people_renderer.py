@@ -139,3 +139,37 @@ def test_a_window_render_is_the_full_render_where_people_can_be(scene):
         _renderer(scene).render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=1, window=window)
     with pytest.raises(ValueError, match="not inside"):
         r.render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=1, window=(SIZE - 4, 0, 8, 8))
+
+
+@pytest.mark.parametrize("denoise", [False, True])
+def test_trace_window_over_the_whole_image_is_mi_render(scene, denoise):
+    """synth.render.trace_window over the whole image draws mi.render's samples (same seed, same
+    wavefront order): the same film channels (RGBA, and albedo and normal with the AOV integrator
+    the denoiser reads) up to the order of the per-pixel sums; a window is that image's crop up
+    to Monte Carlo noise (its own random stream) and costs no new kernel."""
+    import drjit as dr
+
+    from synth.render import trace_window
+
+    verts, mesh, textures, env, cam = scene
+    r = _renderer(scene, backplate=True, denoise=denoise, sampler="multijitter")
+    r.render([verts], [textures[0]], cam, env, 0.3, 1.0, spp=16, seed=5)  # the scene as a frame leaves it
+    mi, sensor, integ = r.mi, r.scene.sensors()[0], r.scene.integrator()
+    ref = np.asarray(mi.TensorXf(mi.render(r.scene, sensor=sensor, spp=16, seed=9)))
+    got = trace_window(mi, r.scene, sensor, integ, (0, 0, SIZE, SIZE), 16, 9)
+    assert got.shape == ref.shape == (SIZE, SIZE, 10 if denoise else 4)
+    assert ref[..., 3].sum() > 100  # the person is in view
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-6)
+    other = trace_window(mi, r.scene, sensor, integ, (0, 0, SIZE, SIZE), 16, 10)
+    assert np.abs(other - ref).max() > 1e-3  # another seed, other samples
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        part = trace_window(mi, r.scene, sensor, integ, (7, 5, 21, 30), 16, 9)
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert part.shape == (30, 21, ref.shape[2])
+    assert all(k["cache_hit"] for k in history if k["type"] == dr.KernelType.JIT)
+    assert abs(float(part[..., 3].mean() - ref[5:35, 7:28, 3].mean())) < 0.05
