@@ -25,11 +25,14 @@ test: $(STAMP)
 
 # Long: the generator part makes about 2000 images (about 40 minutes on 2 cores); the fresh-sample
 # runs (bench_generate: cold and warm kernel caches, 2 and 1 workers, the bare render beside) about
-# 6 minutes; the recovery part needs the validation set (made if missing, about 1 minute). The GPU
-# rows come from benchmarks/gpu_generate.sh on a lent GPU machine.
+# 6 minutes; with a GPU, the same on cuda_ad_rgb with 1-16 workers (benchmarks/gpu_generate.sh does it on
+# a lent machine without Mitsuba); the recovery part needs the validation set (made if missing, about 1 minute).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_forward.py --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_generate.py --workers 2 1 --images 200 --warmup 10 --bare 24 --out docs/benchmarks.md
+	if command -v nvidia-smi >/dev/null && nvidia-smi -L >/dev/null 2>&1; then \
+		$(BIN)/python benchmarks/bench_generate.py --variant cuda_ad_rgb --workers 1 4 8 16 --images 2400 --max-seconds 20 \
+			--warmup 48 --bare 32 --out docs/benchmarks.md; fi
 	$(BIN)/synth generate - --out out/demo/dataset --num 64 --workers 2 --resume --replace-stale
 	$(BIN)/python benchmarks/bench_encoders.py --dataset out/demo/dataset --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_synth.py --out docs/benchmarks.md
