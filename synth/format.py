@@ -163,16 +163,19 @@ def camera_point_tolerance(points: np.ndarray, R: np.ndarray) -> np.ndarray:
     return JSON_ROUNDING * (x1 + r1 + 2.0)
 
 
-def projection_tolerance(points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def projection_tolerance(
+    points: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray, point_error: np.ndarray | float = 0.0
+) -> np.ndarray:
     """(N,) pixels: how far the projection of the (N, 3) stored world points with the stored ``K``,
     ``R``, ``t`` may be from the stored ``keypoints_2d``, from the rounding alone (module
-    docstring, Precision). Points must be in front of the camera."""
+    docstring, Precision), plus ``point_error`` (metres, scalar or (N,)) by which each point
+    itself may be off (:func:`correspondence_tolerance`). Points must be in front of the camera."""
     K, R = np.asarray(K, np.float64), np.asarray(R, np.float64)
     pts = np.asarray(points, np.float64)
     xc = pts @ R.T + np.asarray(t, np.float64)
     z = xc[:, 2]
     ab = np.abs(xc[:, :2] / z[:, None])
-    dx = JSON_ROUNDING * (np.abs(pts).sum(-1) + np.abs(R).sum(-1).max() + 1.0)
+    dx = JSON_ROUNDING * (np.abs(pts).sum(-1) + np.abs(R).sum(-1).max() + 1.0) + point_error
     gain = np.maximum(np.abs(K[0, :2]).sum(), np.abs(K[1, :2]).sum())
     return gain * dx * (1.0 + ab.max(-1)) / z + JSON_ROUNDING * (ab.sum(-1) + 2.0)
 
@@ -186,21 +189,17 @@ def correspondence_tolerance(
     Precision). ``normals`` (N, 3): the normals of their faces (any length). A face seen edge-on
     (or of no area) pins no point along the ray: its tolerance is huge. Points must be in front of
     the camera."""
-    K, R = np.asarray(K, np.float64), np.asarray(R, np.float64)
+    R = np.asarray(R, np.float64)
     pts = np.asarray(points, np.float64)
-    xc = pts @ R.T + np.asarray(t, np.float64)  # also the ray from the camera's centre
-    z = xc[:, 2]
-    ab = np.abs(xc[:, :2] / z[:, None]).max(-1)
-    dist = np.linalg.norm(xc, axis=-1)
+    ray = pts @ R.T + np.asarray(t, np.float64)  # from the camera's centre, camera coordinates
+    dist = np.linalg.norm(ray, axis=-1)
     n = np.asarray(normals, np.float64) @ R.T
     with np.errstate(divide="ignore", invalid="ignore"):
-        cos = np.abs((n * xc).sum(-1)) / (np.linalg.norm(n, axis=-1) * dist)
+        cos = np.abs((n * ray).sum(-1)) / (np.linalg.norm(n, axis=-1) * dist)
     cos = np.clip(np.nan_to_num(cos, nan=0.0), FLOAT32_ROUNDING, 1.0)
     tan = np.sqrt(1.0 - cos * cos) / cos
     hit = HIT_ULPS * FLOAT32_ROUNDING * (np.linalg.norm(pts, axis=-1) + dist) * (1.0 + tan)
-    dx = hit + JSON_ROUNDING * REBUILD_LEVER
-    gain = np.maximum(np.abs(K[0, :2]).sum(), np.abs(K[1, :2]).sum())
-    return projection_tolerance(pts, K, R, t) + gain * dx * (1.0 + ab) / z
+    return projection_tolerance(pts, K, R, t, point_error=hit + JSON_ROUNDING * REBUILD_LEVER)
 
 
 def seen_keypoints(person: dict[str, Any]) -> np.ndarray:

@@ -142,9 +142,9 @@ def emitter_backdrop(mi: Any, emitter: Any, camera: Camera, supersample: int) ->
     w, h, s = camera.width, camera.height, int(supersample)
     m = (camera.R.T @ np.linalg.inv(camera.K)).astype(np.float32)  # pixel (u, v, 1) -> world direction
     mo = [dr.opaque(mi.Float, float(x)) for x in m.reshape(-1)]
-    pixel = dr.arange(mi.UInt32, w * h)
-    row = pixel // dr.opaque(mi.UInt32, w)
-    col = mi.Float(pixel - row * dr.opaque(mi.UInt32, w))
+    pixel, cols = dr.arange(mi.UInt32, w * h), dr.opaque(mi.UInt32, w)
+    row = pixel // cols
+    col = mi.Float(pixel - row * cols)
     row = mi.Float(row)
     total = np.zeros((h * w, 3), np.float64)
     for k in range(s * s):

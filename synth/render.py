@@ -149,8 +149,9 @@ def trace_window(
     sampler.set_samples_per_wavefront(spp)
     sampler.seed(dr.opaque(mi.UInt32, seed % 2**32), n)
     pixel = dr.arange(mi.UInt32, n) // dr.opaque(mi.UInt32, spp)
-    row = pixel // dr.opaque(mi.UInt32, ww)
-    col = pixel - row * dr.opaque(mi.UInt32, ww)
+    cols = dr.opaque(mi.UInt32, ww)
+    row = pixel // cols
+    col = pixel - row * cols
     pos = mi.Point2f(mi.Float(col + dr.opaque(mi.UInt32, x0)), mi.Float(row + dr.opaque(mi.UInt32, y0)))
     sample_pos = pos + sampler.next_2d()
     time = mi.Float(sensor.shutter_open())
