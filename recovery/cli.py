@@ -1,4 +1,4 @@
-"""The ``recovery`` command: train, evaluate, predict, cache, export.
+"""The ``recovery`` command: train, evaluate, predict, cache, export, transfer.
 
 Bad input (a missing or empty dataset, a corrupt checkpoint, one made for another BLSM model file or
 config, an unknown config key) is one line ``recovery: error: PATH: problem`` and exit status 2.
@@ -15,6 +15,7 @@ recovery evaluate CHECKPOINT DATASET --out DIR [--flip]    metrics.json, sheet.p
 recovery predict CHECKPOINT IMAGE --out DIR [--box X0 Y0 X1 Y1] [--focal F] [--flip]
 recovery cache DATASET --out DIR [--crop N]       pre-crop a dataset for training (train does it itself)
 recovery export CHECKPOINT --out FILE [--full]    inference-only copy (float16 unless --full)
+recovery transfer CHECKPOINT --real DIR --synthetic DATASET --out DIR    real-photo transfer check (docs/transfer.md)
 """
 
 
@@ -55,6 +56,16 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--test", required=True, help="the test dataset folder")
     a.add_argument("--out", required=True, help="run folder (one sub-folder per config)")
     a.add_argument("--docs", default="docs", help="where recovery_ablation.{md,json} and the figures go")
+    r = sub.add_parser("transfer", help="real-photo transfer check against a reference 2D pose estimator (docs/transfer.md)")
+    r.add_argument("checkpoint")
+    r.add_argument("--real", required=True, help="folder of real images with boxes.json")
+    r.add_argument("--synthetic", required=True, help="a synth dataset (the held-out test set)")
+    r.add_argument("--out", required=True)
+    r.add_argument("--synthetic-people", type=int, default=400, help="at most N synthetic people, spread over the set")
+    r.add_argument("--reference-command", help="the reference's command line, run with JOB.json OUT.json appended "
+                   "(default: recovery/reference_pose.py in .venv-reference)")
+    r.add_argument("--sheet", type=int, default=48, help="people on each overlay sheet")
+    r.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
     return p
 
 
@@ -124,6 +135,16 @@ def _run(args: argparse.Namespace) -> int:
             print("recovery: ablation interrupted; run the same command to continue", file=sys.stderr)
             return 130
         print(f"wrote {args.docs}/recovery_ablation.md and recovery_ablation.json")
+        return 0
+    if args.cmd == "transfer":
+        from recovery.transfer import format_report, run_transfer
+
+        if args.synthetic_people < 1 or args.sheet < 0:
+            raise ValueError("--synthetic-people must be >= 1 and --sheet >= 0")
+        rep = run_transfer(args.checkpoint, args.real, args.synthetic, args.out, args.reference_command,
+                           args.synthetic_people, flip=args.flip, sheet_count=args.sheet)
+        print(format_report(rep))
+        print(f"wrote {args.out}/report.json, report.md, sheet_real.png, sheet_synthetic.png")
         return 0
     raise AssertionError(args.cmd)
 

@@ -1,0 +1,180 @@
+"""The transfer check (recovery/transfer.py): the box rule, the mean-pose floor, the report's
+structure and the ratio, with a stand-in reference (a script that puts one fixed pose into every
+box it is given); the MediaPipe reference itself is exercised by ``make bench`` (docs/transfer.md)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from recovery import cli
+from recovery.transfer import (COCO_NAMES, JOINT_BOX_GROWTH, MEDIAPIPE_INDEX, Domain, Person, hits, mean_pose_floor,
+                               person_boxes, read_boxes, summarise, visible_joints)
+
+# A stand-in for recovery/reference_pose.py: the same interface (JOB.json OUT.json), one fixed pose
+# (TEMPLATE, in box coordinates) placed into each box; nobody in a box narrower than 20 px; it
+# counts its calls in CALLS so that the test can see the cache at work.
+FAKE_REFERENCE = '''
+import json, sys
+from pathlib import Path
+TEMPLATE = json.loads(Path(__file__).with_name("template.json").read_text())
+job = json.loads(Path(sys.argv[1]).read_text())
+calls = Path(__file__).with_name("CALLS")
+calls.write_text(str(int(calls.read_text()) + 1 if calls.exists() else 1))
+items = []
+for it in job["items"]:
+    x0, y0, x1, y1 = it["box"]
+    if x1 - x0 < 20:
+        items.append({"landmarks": None})
+        continue
+    lms = [[x0 + (x1 - x0) * u, y0 + (y1 - y0) * v, 0.9 if vis else 0.1] for u, v, vis in TEMPLATE]
+    items.append({"landmarks": lms})
+Path(sys.argv[2]).write_text(json.dumps({"reference": "fake", "items": items}))
+'''
+
+
+def _template() -> list[list[float]]:
+    """33 landmarks in box coordinates: the 17 COCO ones on a stick figure, the rest hidden."""
+    rng = np.random.default_rng(3)
+    t = [[0.5, 0.5, 0] for _ in range(33)]
+    for j, m in enumerate(MEDIAPIPE_INDEX):
+        t[m] = [float(rng.uniform(0.2, 0.8)), 0.1 + 0.8 * j / 16, 1]
+    return t
+
+
+@pytest.fixture
+def fake_reference(tmp_path) -> str:
+    d = tmp_path / "ref"
+    d.mkdir()
+    (d / "template.json").write_text(json.dumps(_template()))
+    (d / "fake_ref.py").write_text(FAKE_REFERENCE)
+    return f"{sys.executable} {d / 'fake_ref.py'}"
+
+
+@pytest.fixture
+def real_folder(tmp_path) -> Path:
+    d = tmp_path / "real"
+    d.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.jpg"):
+        Image.fromarray(rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)).save(d / name)
+    (d / "boxes.json").write_text(json.dumps({"a.png": [[10, 5, 70, 115], [100, 20, 110, 60]], "b.jpg": [[40, 10, 120, 110]]}))
+    return d
+
+
+def test_box_rule_and_floor_by_hand():
+    # three people with the same pose in box coordinates, one with a joint moved: the floor is the
+    # per-joint median (the common pose), exact for the first two, one joint off for the third
+    k = len(COCO_NAMES)
+    base = np.stack([np.linspace(0, 1, k), np.linspace(0, 2, k)], 1)
+    ref = np.zeros((3, k, 3))
+    for i, (scale, shift) in enumerate([(50, (10, 20)), (100, (200, 30)), (80, (5, 5))]):
+        ref[i, :, :2] = base * scale + shift
+    ref[..., 2] = 0.9
+    ref[2, 4, :2] += 40  # person 2's right ear, 0.5 of its box away... but inside the joint box
+    ref[1, 3, 2] = 0.2  # hidden: not counted, not in the box
+    vis = visible_joints(ref, [(1000, 1000)] * 3)
+    assert vis.sum() == 3 * k - 1
+    centre, side, ok = person_boxes(ref, vis)
+    assert ok.all()
+    np.testing.assert_allclose(side[:2], JOINT_BOX_GROWTH * np.array([100, 200]))
+    np.testing.assert_allclose(centre[0], [10 + 25, 20 + 50])
+    floor = mean_pose_floor(ref, vis, centre, side, ok)
+    np.testing.assert_allclose(floor[:2], ref[:2, :, :2], atol=1e-9)
+    h = hits(floor, ref, vis, side, 0.1)
+    assert h.tolist() == [k, k - 1, k - 1]  # person 2 misses its moved ear only
+    # fewer than MIN_JOINTS visible: not scored
+    ref[0, 5:, 2] = 0.0
+    _, _, ok = person_boxes(ref, visible_joints(ref, [(1000, 1000)] * 3))
+    assert ok.tolist() == [False, True, True]
+
+
+def _domain(name: str, n: int, ours_hits: int, floor_hits: int) -> Domain:
+    """``n`` people at a 100 px box, all 17 joints visible; the network's first ``ours_hits`` joints
+    and the floor's first ``floor_hits`` on the reference, the others 50 px off."""
+    k = len(COCO_NAMES)
+    ref = np.zeros((n, k, 3))
+    ref[..., 0], ref[..., 1], ref[..., 2] = np.arange(k) * 5.0, 50.0, 1.0
+    ours, floor = ref[..., :2].copy(), ref[..., :2].copy()
+    ours[:, ours_hits:, 0] += 50
+    floor[:, floor_hits:, 0] += 50
+    people = [Person(Path(f"{name}{i}.png"), (0, 0, 100, 100)) for i in range(n)]
+    return Domain(name, people, ref, np.ones((n, k), bool), np.full((n, 2), 50.0), np.full(n, 100.0),
+                  np.ones(n, bool), ours, floor)
+
+
+def test_transfer_ratio_by_hand():
+    # real: 10 vs 8 of 17 joints (gain 2/17); synthetic: 15 vs 7 (gain 8/17): ratio 0.25 at PCK@0.1;
+    # the 50 px misses are within 0.2 x 100 px? no (50 > 20): the same at PCK@0.2
+    rep = summarise(_domain("real", 4, 10, 8), _domain("synthetic", 6, 15, 7))
+    k = len(COCO_NAMES)
+    assert rep["domains"]["real"]["pck@0.1"]["ours"] == pytest.approx(10 / k)
+    assert rep["domains"]["synthetic"]["pck@0.1"]["gain"] == pytest.approx(8 / k)
+    assert rep["transfer_ratio@0.1"] == pytest.approx(0.25)
+    assert rep["transfer_ratio@0.2"] == pytest.approx(0.25)
+    lo, hi = rep["transfer_ratio_90"]
+    assert lo == pytest.approx(0.25) and hi == pytest.approx(0.25)  # identical people: no spread
+
+
+def test_transfer_report(fake_root, real_folder, fake_reference, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["transfer", "default", "--real", str(real_folder), "--synthetic", str(fake_root), "--out", str(out),
+            "--reference-command", fake_reference, "--synthetic-people", "5"]
+    assert cli.main(argv) == 0
+    rep = json.loads((out / "report.json").read_text())
+    real, syn = rep["domains"]["real"], rep["domains"]["synthetic"]
+    assert (real["people"], real["images"], real["scored"], real["reference_failures"]) == (3, 2, 2, 1)
+    assert syn["people"] == 5 and syn["scored"] + syn["reference_failures"] == 5
+    for d in (real, syn):
+        assert d["joints"] == d["scored"] * len(COCO_NAMES)
+        for a in ("0.1", "0.2"):
+            # every box holds the same pose: the floor reproduces the reference exactly
+            assert d[f"pck@{a}"]["floor"] == 1.0
+            assert 0.0 <= d[f"pck@{a}"]["ours"] <= 1.0
+            assert d[f"pck@{a}"]["gain"] == pytest.approx(d[f"pck@{a}"]["ours"] - 1.0)
+    assert "reference_vs_labels" in syn["pck@0.1"] and "reference_vs_labels" not in real["pck@0.1"]
+    # no gain over the floor on synthetic images: no skill to transfer, the ratio is undefined
+    assert np.isnan(rep["transfer_ratio@0.1"]) and rep["transfer_ratio_90"] is None
+    assert rep["reference"] == ["fake"]
+    for name in ("report.md", "sheet_real.png", "sheet_synthetic.png"):
+        assert (out / name).is_file()
+    assert "Transfer ratio" in capsys.readouterr().out
+    calls = Path(fake_reference.split()[1]).with_name("CALLS")
+    assert calls.read_text() == "2"  # one call per domain ...
+    assert cli.main(argv) == 0
+    assert calls.read_text() == "2"  # ... and none on a second run: the answers are cached
+
+
+@pytest.mark.parametrize("content, problem", [
+    (None, "no such file"),
+    ("{not json", "not JSON"),
+    ('{"a.png": [[10, 5, 700, 115]]}', "inside the 160 x 120 image"),
+    ('{"missing.png": [[1, 1, 5, 5]]}', "no such image"),
+    ('{"a.png": []}', "non-empty list"),
+])
+def test_bad_boxes(real_folder, fake_root, fake_reference, tmp_path, capsys, content, problem):
+    boxes = real_folder / "boxes.json"
+    if content is None:
+        boxes.unlink()
+    else:
+        boxes.write_text(content)
+    with pytest.raises(ValueError, match=problem):
+        read_boxes(real_folder)
+    out = tmp_path / "out"
+    assert cli.main(["transfer", "default", "--real", str(real_folder), "--synthetic", str(fake_root), "--out", str(out),
+                     "--reference-command", fake_reference]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and problem in err[0] and not out.exists()
+
+
+def test_no_reference_environment(real_folder, fake_root, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("RECOVERY_REFERENCE_ENV", str(tmp_path / "nowhere"))
+    assert cli.main(["transfer", "default", "--real", str(real_folder), "--synthetic", str(fake_root),
+                     "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "setup_reference.sh" in err[0]
