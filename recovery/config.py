@@ -23,7 +23,8 @@ BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficien
 TASKS = ("hmr_blsm", "mesh", "autoencoder")
 # Settings added after the first checkpoints: stored (and compared on --resume) only when they differ
 # from their default, so that those checkpoints can still be resumed.
-LATER_SETTINGS = (("train", "sync_batchnorm"),)
+LATER_SETTINGS = (("train", "sync_batchnorm"), ("data", "effects"), ("optim", "backbone_lr"), ("train", "frozen_bn"),
+                  ("train", "init"))
 
 
 @dataclass(frozen=True)
@@ -73,6 +74,54 @@ class AugmentSpec:
 
 
 @dataclass(frozen=True)
+class EffectsSpec:
+    """Camera, sensor and occlusion effects on the training crops (off by default; docs/transfer.md).
+
+    Each is drawn per item from its own random stream, so turning one on leaves every other draw as
+    it was. Labels are unchanged: the effects touch pixels only.
+
+    Attributes:
+        blur_prob: probability of a blur: half defocus (Gaussian, sigma uniform in [0.5, blur_px]
+            px), half motion (a line of 1 + 2 blur_px px at most, any direction).
+        blur_px: the blur's size, crop pixels.
+        noise: sensor noise: Gaussian with sigma uniform in [0, noise] (of the [0, 1] range), signal
+            dependent: sigma * sqrt(0.25 + value) (shot plus read noise).
+        jpeg_prob: probability of a JPEG round trip (Pillow) ...
+        jpeg_quality: ... at a quality uniform in [jpeg_quality, 95].
+        lowres_prob: probability of seeing the person at a lower resolution: down to ``1 / factor``
+            with factor uniform in [1, lowres] (area filter), back up bilinearly.
+        lowres: the largest factor.
+        occlusion_prob: probability of an occluder: a rectangle copied from another place of the
+            same crop (its pixels, so a textured object: background, clothes, skin) of sides uniform
+            in [0.2, occlusion_size] of the crop, at a uniform place. The keypoints under it keep
+            their labels (the network learns to infer them).
+        occlusion_size: the largest side, fraction of the crop.
+    """
+
+    blur_prob: float = 0.0
+    blur_px: float = 2.0
+    noise: float = 0.0
+    jpeg_prob: float = 0.0
+    jpeg_quality: int = 30
+    lowres_prob: float = 0.0
+    lowres: float = 3.0
+    occlusion_prob: float = 0.0
+    occlusion_size: float = 0.5
+
+    def __post_init__(self) -> None:
+        probs = (self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob)
+        ok = all(0 <= p <= 1 for p in probs) and self.blur_px >= 0.5 and 0 <= self.noise <= 0.5
+        ok &= 1 <= self.jpeg_quality <= 95 and self.lowres >= 1 and 0.2 <= self.occlusion_size <= 1
+        if not ok:
+            raise ValueError(f"data.effects: probabilities in [0, 1], blur_px >= 0.5, noise in [0, 0.5], jpeg_quality in "
+                             f"[1, 95], lowres >= 1, occlusion_size in [0.2, 1]; got {self}")
+
+    @property
+    def active(self) -> bool:
+        return max(self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob) > 0 or self.noise > 0
+
+
+@dataclass(frozen=True)
 class DataConfig:
     """Datasets (``synth generate`` folders) and their pre-cropped caches.
 
@@ -87,6 +136,7 @@ class DataConfig:
         workers: DataLoader worker processes (0: in the main process).
         max_val: validation people used at most (spread evenly over the set; 0: all).
         augment: the per-batch augmentation (``null`` for none).
+        effects: camera, sensor and occlusion effects after the augmentation (:class:`EffectsSpec`).
     """
 
     train: tuple[str, ...] = ("out/data/train_hdri", "out/data/train_sky")
@@ -97,6 +147,7 @@ class DataConfig:
     workers: int = 0
     max_val: int = 400
     augment: AugmentSpec | None = field(default_factory=AugmentSpec)
+    effects: EffectsSpec = field(default_factory=EffectsSpec)
 
     def __post_init__(self) -> None:
         if not self.train:
@@ -167,12 +218,13 @@ class OptimConfig:
     schedule: str = "cosine"
     warmup_steps: int = 200
     grad_clip: float = 1.0
+    backbone_lr: float = 1.0  # the backbone's learning rate over ``lr`` (0 keeps it fixed)
 
     def __post_init__(self) -> None:
         if self.schedule not in ("cosine", "constant"):
             raise ValueError(f"optim.schedule must be cosine or constant, got {self.schedule!r}")
-        if self.lr <= 0 or self.weight_decay < 0 or self.warmup_steps < 0 or self.grad_clip < 0:
-            raise ValueError("optim.lr must be > 0; weight_decay, warmup_steps, grad_clip >= 0")
+        if self.lr <= 0 or self.weight_decay < 0 or self.warmup_steps < 0 or self.grad_clip < 0 or self.backbone_lr < 0:
+            raise ValueError("optim.lr must be > 0; weight_decay, warmup_steps, grad_clip, backbone_lr >= 0")
 
 
 @dataclass(frozen=True)
@@ -195,6 +247,11 @@ class TrainConfig:
         sync_batchnorm: with several processes, BatchNorm statistics over the global batch (so the
             run is the single-process run); off, each process normalises its own part. No effect
             on a single process.
+        frozen_bn: the backbone's BatchNorm layers keep their statistics (ImageNet's, or ``init``'s)
+            and affine parameters: eval mode while the rest trains.
+        init: a checkpoint (a run's ``best.pt``/``last.pt``, an exported file, or ``default``) whose
+            network weights start the run (fine-tuning); its config must describe the same network.
+            The optimiser and schedule start afresh. "" : ImageNet backbone, as ``model`` says.
     """
 
     steps: int = 10000
@@ -208,6 +265,8 @@ class TrainConfig:
     channels_last: bool = True
     threads: int = 0
     sync_batchnorm: bool = True
+    frozen_bn: bool = False
+    init: str = ""
 
     def __post_init__(self) -> None:
         if min(self.steps, self.batch_size, self.val_every, self.checkpoint_every, self.log_every) < 1:
@@ -327,7 +386,9 @@ class RecoveryConfig:
         for k in unused:
             d.pop(k)
         for section, key in LATER_SETTINGS:
-            if section in d and d[section][key] == getattr(type(getattr(self, section))(), key):
+            default = getattr(type(getattr(self, section))(), key)
+            default = dataclasses.asdict(default) if dataclasses.is_dataclass(default) else default
+            if section in d and d[section][key] == default:
                 d[section].pop(key)
         if self.task == "hmr_blsm":
             d.pop("task")  # the layout of the first HMR-BLSM checkpoints

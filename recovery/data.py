@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+import math
 import shutil
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -282,8 +283,10 @@ class BatchAugment:
     """
 
     def __init__(self, crop: int, context: float, augment: AugmentConfig | None, seed: int,
-                 dof_mirror: tuple[torch.Tensor, torch.Tensor], keypoint_names: Sequence[str]) -> None:
+                 dof_mirror: tuple[torch.Tensor, torch.Tensor], keypoint_names: Sequence[str],
+                 effects: Any = None) -> None:
         self.crop, self.context, self.augment, self.seed = crop, context, augment, seed
+        self.effects = effects if effects is not None and effects.active else None
         self.dof_perm, self.dof_sign = dof_mirror[0].clone(), dof_mirror[1].clone().float()
         names = list(keypoint_names)
         self.kp_perm = torch.tensor([names.index(mirror_name(n)) for n in names])
@@ -294,7 +297,11 @@ class BatchAugment:
 
     def __call__(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
         b = _stack(items)
-        return self.apply(b, [self.params(int(k[0]), int(k[1])) for k in b["key"]])
+        out = self.apply(b, [self.params(int(k[0]), int(k[1])) for k in b["key"]])
+        if self.effects is not None:  # their own stream: (seed, epoch, item, 1)
+            rngs = [np.random.default_rng([self.seed, int(k[0]), int(k[1]), 1]) for k in b["key"]]
+            out["image"] = apply_effects(out["image"], self.effects, rngs)
+        return out
 
     def apply(self, b: dict[str, torch.Tensor], params: Sequence[CropParams]) -> dict[str, torch.Tensor]:
         """Crop the stacked cache items ``b`` with one :class:`CropParams` per item."""
@@ -364,6 +371,56 @@ def _colour(img: torch.Tensor, params: Sequence[CropParams]) -> torch.Tensor:
     if (jit[:, 3] != 0).any():
         x = enhance.adjust_hue(x, jit[:, 3])
     return x.clamp(0.0, 1.0)
+
+
+def apply_effects(img: torch.Tensor, spec: Any, rngs: Sequence[np.random.Generator]) -> torch.Tensor:
+    """Camera, sensor and occlusion effects (:class:`recovery.config.EffectsSpec`) on (B, 3, S, S)
+    crops in [0, 1], in the order light takes: an occluder in the scene, the lens' or the motion's
+    blur, a lower resolution, sensor noise, then JPEG. ``rngs``: one generator per item."""
+    import io
+
+    import torch.nn.functional as F
+    from kornia.filters import gaussian_blur2d, motion_blur
+    from PIL import Image
+
+    out = img.clone()
+    h, w = out.shape[-2:]
+    for i, rng in enumerate(rngs):
+        u = rng.uniform(size=12)
+        x = out[i:i + 1]
+        if u[0] < spec.occlusion_prob:
+            side = (0.2 + (spec.occlusion_size - 0.2) * u[1:3]) * np.array([w, h])
+            ow, oh = max(int(side[0]), 1), max(int(side[1]), 1)
+            dx, dy = int(u[3] * (w - ow + 1)), int(u[4] * (h - oh + 1))
+            sx, sy = int(u[5] * (w - ow + 1)), int(u[6] * (h - oh + 1))
+            x[0, :, dy:dy + oh, dx:dx + ow] = img[i, :, sy:sy + oh, sx:sx + ow]  # a textured object
+        if u[7] < spec.blur_prob:
+            if u[8] < 0.5:
+                sigma = 0.5 + (spec.blur_px - 0.5) * rng.uniform()
+                k = 2 * int(math.ceil(3 * sigma)) + 1
+                x = gaussian_blur2d(x, (k, k), torch.tensor([[sigma, sigma]], dtype=x.dtype))
+            else:
+                k = 2 * int(round(rng.uniform(0.5, spec.blur_px + 0.5))) + 1
+                x = motion_blur(x, k, float(rng.uniform(0, 180)), float(rng.uniform(-1, 1)))
+        if u[9] < spec.lowres_prob:
+            f = 1 + (spec.lowres - 1) * rng.uniform()
+            small = F.interpolate(x, size=(max(int(h / f), 4), max(int(w / f), 4)), mode="area")
+            x = F.interpolate(small, size=(h, w), mode="bilinear", align_corners=False)
+        if spec.noise > 0:
+            sigma = spec.noise * u[10]
+            z = torch.from_numpy(rng.standard_normal(x.shape).astype(np.float32)).to(x.dtype)
+            x = x + sigma * torch.sqrt(0.25 + x.clamp(0, 1)) * z
+        x = x.clamp(0.0, 1.0)
+        if u[11] < spec.jpeg_prob:
+            q = int(rng.integers(spec.jpeg_quality, 96))
+            arr = (x[0].permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8)
+            buf = io.BytesIO()
+            Image.fromarray(arr).save(buf, format="JPEG", quality=q)
+            buf.seek(0)
+            with Image.open(buf) as im:
+                x = torch.from_numpy(np.asarray(im.convert("RGB"), np.float32) / 255.0).permute(2, 0, 1)[None].to(x.dtype)
+        out[i] = x[0]
+    return out
 
 
 def augment_config(spec: Any) -> AugmentConfig | None:

@@ -80,11 +80,19 @@ class HMRTask:
             raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
         self.crop = cfg.data.crop
         self.model = build_model(cfg, body, init)
+        if cfg.train.init:
+            self._load_init(cfg.train.init)
         self.model.backbone.use_channels_last(cfg.train.channels_last)
         self.net: nn.Module = self.model  # the training forward: the DDP wrapper with several processes
         self.world, self.rank = 1, 0
         o = cfg.optim
-        self.opt = torch.optim.AdamW(self.model.parameters(), lr=o.lr, weight_decay=o.weight_decay)
+        groups: Any = self.model.parameters()  # one group, as runs made before optim.backbone_lr
+        if o.backbone_lr != 1.0:
+            backbone = list(self.model.backbone.parameters())
+            ids = {id(p) for p in backbone}
+            groups = [{"params": [p for p in self.model.parameters() if id(p) not in ids]},
+                      {"params": backbone, "lr": o.lr * o.backbone_lr}]
+        self.opt = torch.optim.AdamW(groups, lr=o.lr, weight_decay=o.weight_decay)
         total = cfg.train.steps
         self.sched = torch.optim.lr_scheduler.LambdaLR(
             self.opt, lambda s: warmup_cosine(s, total, o.warmup_steps, o.schedule))
@@ -99,6 +107,25 @@ class HMRTask:
         self.eval_idx = torch.tensor(indices(body.keypoint_names))
         self.device = torch.device("cpu")
         self.amp = False
+
+    def _load_init(self, checkpoint: str) -> None:
+        """``train.init``: start from the weights of a checkpoint of the same network and model file."""
+        from recovery.predictor import load_predictor
+
+        src = load_predictor(checkpoint, log=lambda *a: None)
+        if src.task != "hmr_blsm" or src.config.model_hash() != self.cfg.model_hash():
+            raise ValueError(f"{src.path}: train.init is not a checkpoint of this network (model settings differ)")
+        if src.body.num_vertices != self.body.num_vertices or not torch.equal(src.body.template, self.body.template):
+            raise ValueError(f"{src.path}: train.init was made with another BLSM model file")
+        self.model.load_state_dict(src.model.state_dict())
+
+    def _freeze_bn(self) -> None:
+        """``train.frozen_bn``: the backbone's BatchNorm layers in eval mode, their affine fixed."""
+        for m in self.model.backbone.modules():
+            if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                m.eval()
+                for p in m.parameters():
+                    p.requires_grad_(False)
 
     # -- Task protocol
     def modules(self) -> dict[str, nn.Module]:
@@ -185,6 +212,8 @@ class HMRTask:
         """One update on this rank's part of the batch; returns the global losses."""
         batch = {k: v.to(self.device, non_blocking=True) for k, v in batch.items()}
         self.model.train()
+        if self.cfg.train.frozen_bn:
+            self._freeze_bn()
         terms, (pred, _) = self.losses(batch)
         total = torch.stack(list(terms.values())).sum()
         names = [*terms, "total"]

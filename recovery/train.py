@@ -173,7 +173,7 @@ def loaders(cfg: RecoveryConfig, task: Any, train: CropCache, val: CropCache | N
     global batch) and the validation loader."""
     d = cfg.data
     aug = BatchAugment(d.crop, train.context, augment_config(d.augment), cfg.train.seed, task.body.dof_mirror,
-                       train.keypoint_names)
+                       train.keypoint_names, effects=d.effects)
 
     def make_loader(consumed: int) -> Any:
         n = len(train)

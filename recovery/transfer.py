@@ -172,7 +172,7 @@ def run_reference(people: list[Person], command: list[str], cache_path: Path) ->
         items = answer.get("items", [])
         if len(items) != len(todo):
             raise ValueError(f"reference {shlex.join(command)}: answered {len(items)} of {len(todo)} people")
-        for i, item in zip(todo, items):
+        for i, item in zip(todo, items, strict=True):
             cache[keys[i]] = {"landmarks": item["landmarks"], "reference": answer.get("reference", tag)}
         with atomic_write(cache_path, "w") as fh:
             fh.write(json.dumps(cache))

@@ -15,6 +15,7 @@ from recovery.config import (
     OptimConfig,
     RecoveryConfig,
     TrainConfig,
+    load_config,
 )
 from recovery.data import BatchAugment, CropCache
 from recovery.hmr_task import HMRTask, warmup_cosine
@@ -102,3 +103,34 @@ def test_warmup_then_cosine():
     assert warmup_cosine(55, 100, 10, "cosine") == pytest.approx(0.5)
     assert warmup_cosine(100, 100, 10, "cosine") == pytest.approx(0.0)
     assert warmup_cosine(70, 100, 10, "constant") == 1.0
+
+
+def test_init_backbone_rate_and_frozen_batchnorm(run_a, cache_dir, model):
+    """train.init starts from a checkpoint's weights; optim.backbone_lr scales the backbone's rate;
+    train.frozen_bn keeps the backbone's BatchNorm statistics through a training step."""
+    import dataclasses
+
+    from recovery.predictor import load_predictor
+
+    base = load_config(run_a.parent / "config.yaml")
+    cfg = dataclasses.replace(base, optim=dataclasses.replace(base.optim, backbone_lr=0.1),
+                              discriminator=dataclasses.replace(base.discriminator, enabled=False),
+                              train=dataclasses.replace(base.train, init=str(run_a / "best.pt"), frozen_bn=True))
+    cache = CropCache([cache_dir])
+    layout = ParamLayout(model.num_dofs, model.num_bone_coeffs, cfg.model.num_shape)
+    task = HMRTask(cfg, model, theta0(cache, layout, CROP), None, cache.keypoint_names, {})
+    src = load_predictor(run_a / "best.pt", log=lambda *a: None).model.state_dict()
+    for k, v in task.model.state_dict().items():
+        assert torch.equal(v, src[k].to(v.dtype)), k
+    lrs = [g["lr"] for g in task.opt.param_groups]
+    assert lrs[1] == pytest.approx(0.1 * lrs[0])
+    bn = [m for m in task.model.backbone.modules() if isinstance(m, torch.nn.modules.batchnorm._BatchNorm)]
+    before = [m.running_mean.clone() for m in bn]
+    aug = BatchAugment(CROP, cache.context, None, 0, model.dof_mirror, cache.keypoint_names)
+    with one_thread():
+        task.training_step(aug([cache[(0, i)] for i in range(4)]), 0)
+    assert all(torch.equal(a, m.running_mean) for a, m in zip(before, bn, strict=True))
+    # a checkpoint of another network is refused
+    other = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, hidden=32))
+    with pytest.raises(ValueError, match="not a checkpoint of this network"):
+        HMRTask(other, model, theta0(cache, layout, CROP), None, cache.keypoint_names, {})

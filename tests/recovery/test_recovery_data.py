@@ -216,3 +216,31 @@ def test_missing_or_foreign_cache_is_a_one_line_error(tmp_path):
         CropCache([tmp_path])
     with pytest.raises(ValueError, match="no dataset manifest here"):
         build_cache(tmp_path, tmp_path / "c", CROP, CONTEXT, workers=0)
+
+
+def test_effects_touch_pixels_only_and_are_repeatable(cache, model):
+    from recovery.config import EffectsSpec
+
+    spec = AugmentSpec(rotation_prob=1.0)
+    items = [cache[(1, i)] for i in range(len(cache))]
+    plain = _augment(cache, model, spec, seed=3)(items)
+    every = EffectsSpec(blur_prob=1.0, noise=0.05, jpeg_prob=1.0, lowres_prob=1.0, occlusion_prob=1.0)
+    aug = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names, effects=every)
+    b = aug(items)
+    for k in plain:
+        if k != "image":
+            assert torch.equal(b[k], plain[k]), k  # labels, masks and parts as without effects
+    assert b["image"].shape == plain["image"].shape and 0 <= b["image"].min() and b["image"].max() <= 1
+    assert (b["image"] - plain["image"]).abs().mean() > 0.01
+    again = aug(items[::-1])
+    assert torch.equal(again["image"], b["image"].flip(0))  # a function of (seed, epoch, item) only
+    for one in (EffectsSpec(blur_prob=1.0), EffectsSpec(noise=0.05), EffectsSpec(jpeg_prob=1.0, jpeg_quality=10),
+                EffectsSpec(lowres_prob=1.0), EffectsSpec(occlusion_prob=1.0)):
+        img = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names,
+                           effects=one)(items)["image"]
+        assert (img - plain["image"]).abs().mean() > 1e-3, one
+    off = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names,
+                       effects=EffectsSpec())(items)
+    assert torch.equal(off["image"], plain["image"])  # all off: the crops of before
+    with pytest.raises(ValueError, match="data.effects"):
+        EffectsSpec(blur_prob=1.5)

@@ -13,8 +13,19 @@ import pytest
 from PIL import Image
 
 from recovery import cli
-from recovery.transfer import (COCO_NAMES, JOINT_BOX_GROWTH, MEDIAPIPE_INDEX, Domain, Person, hits, mean_pose_floor,
-                               person_boxes, read_boxes, summarise, visible_joints)
+from recovery.transfer import (
+    COCO_NAMES,
+    JOINT_BOX_GROWTH,
+    MEDIAPIPE_INDEX,
+    Domain,
+    Person,
+    hits,
+    mean_pose_floor,
+    person_boxes,
+    read_boxes,
+    summarise,
+    visible_joints,
+)
 
 # A stand-in for recovery/reference_pose.py: the same interface (JOB.json OUT.json), one fixed pose
 # (TEMPLATE, in box coordinates) placed into each box; nobody in a box narrower than 20 px; it
