@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import json
 import math
 import os
 import sys
@@ -46,7 +47,7 @@ def list_folder(
 ) -> list[Path]:
     """Sorted files of ``folder`` with one of ``exts``, restricted to the names in ``only`` (when
     given) and without those in ``exclude``; an error when there is none or a name is not there."""
-    folder = Path(folder)
+    folder = Path(folder).expanduser()
     if not folder.is_dir():
         raise ValueError(f"{folder}: no such {what} folder")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts and p.is_file())
@@ -187,6 +188,75 @@ def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Ge
     y0 = int(rng.integers(0, h - ch + 1))
     x0 = int(rng.integers(0, w - cw + 1))
     buf = oiio.ImageBuf(np.ascontiguousarray(image[y0 : y0 + ch, x0 : x0 + cw]))
+    out = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, 3))
+    return np.asarray(out.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
+
+
+PLATES_JSON = "plates.json"
+"""A backplate folder's optional description: ``{"file.jpg": {"horizon": 0.45, ...}, ...}``, the row
+of the photograph's horizon (its eye level: the vanishing line of the ground) as a fraction of the
+image height from the top, or null where no ground a person could stand on is seen
+(``scripts/setup_backplates.py`` writes one for the bank it installs)."""
+
+
+def read_horizons(folder: str | Path) -> dict[str, float]:
+    """The horizons of ``folder``'s ``plates.json`` by file name (files without one left out); {}
+    without the file. A ValueError names the file when it is not such a JSON object."""
+    path = Path(folder).expanduser() / PLATES_JSON
+    if not path.is_file():
+        return {}
+    try:
+        plates = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not readable JSON ({exc})") from None
+    if not isinstance(plates, dict):
+        raise ValueError(f"{path}: expected an object {{\"file\": {{\"horizon\": fraction or null}}}}")
+    out = {}
+    for name, info in plates.items():
+        hz = info.get("horizon") if isinstance(info, dict) else None
+        if hz is None:
+            continue
+        if not isinstance(hz, (int, float)) or not 0.0 <= hz <= 1.0:
+            raise ValueError(f"{path}: {name!r} has horizon {hz!r}; expected a fraction of the height in [0, 1] or null")
+        out[name] = float(hz)
+    return out
+
+
+def horizon_row(K: np.ndarray, R: np.ndarray) -> float | None:
+    """The image row where the horizon (directions with world ``y = 0``) crosses the principal
+    point's column, or None when the camera is not upright (looking nearly straight down or up,
+    or upside down): ``v = cy - fy R[2, 1] / R[1, 1]`` (OpenCV camera, Y-up world)."""
+    if R[1, 1] > -0.3:
+        return None
+    return float(K[1, 2] - K[1, 1] * R[2, 1] / R[1, 1])
+
+
+def crop_backplate_at_horizon(image: np.ndarray, horizon: float, width: int, height: int, row: float,
+                              rng: np.random.Generator) -> np.ndarray | None:
+    """A crop of ``image`` at the target aspect, resized, whose horizon (``horizon`` of its height)
+    lands on image row ``row``: the camera's own horizon, so that the people's ground plane meets
+    the photograph's ground at eye level. The crop is as large as the horizon allows, times a
+    factor uniform in [0.6, 1] (at least 25 % of the plate's shorter side); None when no such crop
+    fits in the plate."""
+    import OpenImageIO as oiio
+
+    h, w = image.shape[:2]
+    aspect = width / height
+    hz, t = horizon * h, row / height  # plate pixels; the horizon's place in the output, 0 top .. 1 bottom
+    full = min(h, w / aspect)
+    limits = [full]
+    if t > 0:
+        limits.append(hz / t)
+    if t < 1:
+        limits.append((h - hz) / (1 - t))
+    top = min(limits)
+    if top < 0.25 * full or top < 8:
+        return None
+    ch = int(top * rng.uniform(0.6, 1.0))
+    cw = max(1, int(round(ch * aspect)))
+    y0 = min(max(int(round(hz - t * ch)), 0), h - ch)  # whole plate pixels: the horizon within one of them
+    x0 = int(rng.integers(0, w - cw + 1))
+    buf = oiio.ImageBuf(np.ascontiguousarray(image[y0:y0 + ch, x0:x0 + cw]))
     out = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, 3))
     return np.asarray(out.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
 

@@ -166,7 +166,11 @@ class BackgroundConfig:
     """Backgrounds (:mod:`synth.backgrounds`): ``default`` (embedded procedural sky), ``hdri`` or
     ``images`` (a ``folder``); exposure in stops, drawn uniformly; environment width in texels.
     ``files`` keeps only the named files of the folder (empty: all) and ``exclude`` leaves the named
-    ones out, so that train and test sets can hold out backgrounds of one folder."""
+    ones out, so that train and test sets can hold out backgrounds of one folder. ``align_horizon``
+    (images): where the folder's ``plates.json`` gives a plate's horizon, the plate is cropped so
+    that its horizon lies on the camera's, and the people stand on the photograph's ground
+    (:func:`synth.backgrounds.crop_backplate_at_horizon`); the sample's background info records
+    ``horizon_row`` (null where the camera is not upright or no crop fits: a random crop then)."""
 
     kind: str = "default"
     folder: str = ""
@@ -174,6 +178,7 @@ class BackgroundConfig:
     exclude: tuple[str, ...] = ()
     exposure_ev: tuple[float, float] = (-0.5, 0.5)
     env_width: int = 512
+    align_horizon: bool = True
 
     def __post_init__(self) -> None:
         if self.kind not in ("default", "hdri", "images"):

@@ -253,6 +253,7 @@ class SampleMaker:
             self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
         elif b.kind == "images":
             self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
+        self.horizons = bg.read_horizons(b.folder) if b.kind == "images" and b.align_horizon else {}
         # Hair is grown on Anny's stand-in people only: user scans carry their own.
         self.hair = cfg.hair.enabled and cfg.pipeline != "raw" and cfg.subjects.source == "anny"
         # With the backdrop composited, the path tracer renders only the people's window
@@ -301,7 +302,7 @@ class SampleMaker:
         self._rigs[si] = rig
         return rig
 
-    def background(self, rng: np.random.Generator) -> bg.Background:
+    def background(self, rng: np.random.Generator, camera: Any = None) -> bg.Background:
         b, cam = self.cfg.background, self.cfg.camera
         scale = float(2.0 ** rng.uniform(*b.exposure_ev))
         rot = float(rng.uniform(0, 2 * math.pi))
@@ -315,8 +316,18 @@ class SampleMaker:
             f = self.bg_files[int(rng.integers(len(self.bg_files)))]
             if f not in self._bg_cache:
                 self._bg_cache[f] = bg.read_image(f)
-            plate = bg.crop_backplate(self._bg_cache[f], cam.width, cam.height, rng)
-            return bg.Background("images", env, rot, scale, plate, {"file": f.name, "rotation": rot, "exposure": scale, **info})
+            extra: dict[str, Any] = {}
+            plate = None
+            if self.horizons:  # a described bank: the plate's horizon on the camera's (plates.json)
+                hz = self.horizons.get(f.name)
+                row = bg.horizon_row(camera.K, camera.R) if hz is not None and camera is not None else None
+                if row is not None:
+                    plate = bg.crop_backplate_at_horizon(self._bg_cache[f], hz, cam.width, cam.height, row, rng)
+                extra = {"horizon_row": row if plate is not None else None}
+            if plate is None:
+                plate = bg.crop_backplate(self._bg_cache[f], cam.width, cam.height, rng)
+            return bg.Background("images", env, rot, scale, plate,
+                                 {"file": f.name, "rotation": rot, "exposure": scale, **info, **extra})
         return bg.Background("default", env, rot, scale, None, {"rotation": rot, "exposure": scale, **info})
 
     def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool) -> PeopleRenderer:
@@ -381,7 +392,7 @@ class SampleMaker:
             p["outline"] = (v[idx] + d).astype(np.float32)
         outline = np.concatenate([p["outline"] for p in people])  # every person's hull vertices
         camera, cam_info = sample_camera(outline, cfg.camera, rng)
-        back = self.background(rng)
+        back = self.background(rng, camera)
         rigs = [p["rig"] for p in people]
         # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
         # a backplate) and the backdrop is composited after the render: darkened by the people's
@@ -792,6 +803,8 @@ def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
         bg.check_files(bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude), b.kind, b.env_width)
     elif b.kind == "images":
         bg.check_files(bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude), b.kind, b.env_width)
+        if b.align_horizon:
+            bg.read_horizons(b.folder)  # a bad plates.json is an error before any work
     if cfg.subjects.source == "folder":
         from synth.scans import check_scans
 
@@ -923,7 +936,13 @@ class _Progress:
 
 
 def _cfg_json(cfg: GeneratorConfig) -> dict:
-    return json.loads(json.dumps(asdict(cfg)))
+    """The config as the manifest stores it. ``background.align_horizon`` is left out where it
+    changes nothing (no plates.json horizons), so that runs made before it resume."""
+    d = json.loads(json.dumps(asdict(cfg)))
+    b = cfg.background
+    if b.kind != "images" or not b.align_horizon or not bg.read_horizons(b.folder):
+        d["background"].pop("align_horizon")
+    return d
 
 
 def _hms(s: float) -> str:
