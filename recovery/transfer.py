@@ -83,7 +83,7 @@ class Person:
 
 def read_boxes(folder: str | Path) -> list[Person]:
     """The people of a real-image folder: ``FOLDER/boxes.json`` maps image file names (relative to
-    the folder) to lists of ``[x0, y0, x1, y1]`` boxes in pixels. A ValueError names the file and the
+    the folder, or to its ``images/`` sub-folder) to lists of ``[x0, y0, x1, y1]`` boxes in pixels. A ValueError names the file and the
     problem (no boxes.json, bad JSON, a missing or unreadable image, a box outside its image)."""
     from recovery.predict import read_image
 
@@ -100,6 +100,8 @@ def read_boxes(folder: str | Path) -> list[Person]:
     people = []
     for name in sorted(boxes):
         image = folder / name
+        if not image.exists() and (folder / "images" / name).exists():
+            image = folder / "images" / name  # the layout of scripts/setup_transfer_devset.py
         h, w = read_image(image).shape[:2]
         entries = boxes[name]
         if not isinstance(entries, list) or not entries:
@@ -373,7 +375,7 @@ def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray
     sheet = Image.new("RGB", (cols * tile, rows * tile), (32, 32, 32))
     for n, v in enumerate(views):
         crop = v["crop"]
-        img = overlay(crop, v["vertices"], faces, v["K_crop"], alpha=0.45)
+        img = overlay(crop, v["vertices"], faces, v["K_crop"], alpha=0.6)
         im = Image.fromarray(img).resize((tile, tile), Image.BILINEAR)
         draw = ImageDraw.Draw(im)
         sc = tile / crop.shape[0]

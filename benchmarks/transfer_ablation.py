@@ -1,0 +1,132 @@
+"""The transfer ablation of docs/transfer.md: one row per lever, each at the same training budget.
+
+    python benchmarks/transfer_ablation.py [--rows base plates ...] [--docs docs]
+
+Each row fine-tunes the packaged HMR-BLSM on one lever's data with one recipe
+(configs/recovery/transfer/ROW.yaml; the data of configs/synth/transfer/DATA.yaml is made first
+when missing), then scores the run's ``last.pt``:
+
+- ``recovery evaluate`` on the held-out synthetic test set ``out/data/test`` (configs/synth/test.yaml:
+  held-out subjects, CMU clips 007_12 and 005_20, the sunset.exr background): PA-MPJPE;
+- ``recovery transfer`` on the real development set (scripts/setup_transfer_devset.py) against
+  MediaPipe Pose, with the same synthetic test set: the transfer ratio.
+
+The row ``packaged`` scores the packaged checkpoint itself (no fine-tuning). Every step is resumable
+(a finished step is skipped), so an interrupted run continues. Results go to ``docs/transfer.json``
+and the table between the markers of ``docs/transfer.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+TEST = "out/data/test"
+REAL = "out/transfer_dev"
+ROWS = {  # name: (lever, data configs, recovery config)
+    "packaged": ("the packaged checkpoint, not fine-tuned", (), None),
+    "base": ("fine-tuned on the base data (procedural sky; the protocol's reference row)", ("base",), "base"),
+    "plates": ("backgrounds: real photographs as backplates, horizon-aligned", ("plates",), "plates"),
+    "effects": ("camera and sensor effects, occluders (data.effects)", ("base",), "effects"),
+    "recipe": ("recipe: backbone at 0.1x the rate, frozen BatchNorm statistics", ("base",), "recipe"),
+    "combined": ("backplates + effects + recipe", ("plates",), "combined"),
+}
+BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
+
+
+def run(cmd: list[str], log: Path) -> float:
+    """Run ``cmd`` from the repository root, its output appended to ``log``; returns seconds."""
+    t = time.time()
+    with log.open("a") as fh:
+        fh.write(f"$ {' '.join(cmd)}\n")
+        fh.flush()
+        res = subprocess.run(cmd, cwd=ROOT, stdout=fh, stderr=subprocess.STDOUT)
+    if res.returncode != 0:
+        raise SystemExit(f"transfer_ablation: {' '.join(cmd)} failed (exit {res.returncode}); see {log}")
+    return time.time() - t
+
+
+def row(name: str, out: Path, log: Path) -> dict:
+    lever, data, config = ROWS[name]
+    result = out / "results" / f"{name}.json"
+    if result.is_file():
+        return json.loads(result.read_text())
+    seconds: dict[str, float] = {}
+    for d in data:
+        if not (ROOT / "out/transfer/data" / d / "manifest.json").is_file():
+            seconds[f"data_{d}"] = run([str(BIN / "synth"), "generate", f"configs/synth/transfer/{d}.yaml",
+                                        "--out", f"out/transfer/data/{d}", "--workers", "2", "--resume"], log)
+    ck = "default"
+    if config:
+        runs = out / "runs" / name
+        if not (runs / "last.pt").is_file() or not (runs / "done").is_file():
+            seconds["train"] = run([str(BIN / "recovery"), "train", f"configs/recovery/transfer/{config}.yaml",
+                                    "--out", str(runs), "--resume"], log)
+            (runs / "done").write_text("")
+        ck = str(runs / "last.pt")
+    ev = out / "eval" / name
+    if not (ev / "metrics.json").is_file():
+        seconds["evaluate"] = run([str(BIN / "recovery"), "evaluate", ck, TEST, "--out", str(ev)], log)
+    tr = out / "check" / name
+    if not (tr / "report.json").is_file():
+        seconds["transfer"] = run([str(BIN / "recovery"), "transfer", ck, "--real", REAL, "--synthetic", TEST,
+                                   "--out", str(tr)], log)
+    metrics = json.loads((ev / "metrics.json").read_text())
+    rep = json.loads((tr / "report.json").read_text())
+    res = {"row": name, "lever": lever, "data": list(data), "config": f"configs/recovery/transfer/{config}.yaml" if config else None,
+           "checkpoint": ck, "pa_mpjpe_mm": metrics["pa_mpjpe_mm"], "mpjpe_mm": metrics["mpjpe_mm"],
+           "test_people": metrics["people"], "transfer": rep, "seconds": seconds}
+    result.parent.mkdir(parents=True, exist_ok=True)
+    result.write_text(json.dumps(res, indent=1))
+    return res
+
+
+def table(results: list[dict]) -> str:
+    lines = ["| row | lever | PA-MPJPE synthetic test (mm) | PCK@0.1 real: ours / floor | PCK@0.1 synthetic: ours / floor | "
+             "transfer ratio @0.1 (90 % interval) | @0.2 |", "|---|---|---:|---:|---:|---:|---:|"]
+    for r in results:
+        t = r["transfer"]
+        real, syn = t["domains"]["real"]["pck@0.1"], t["domains"]["synthetic"]["pck@0.1"]
+        ci = t.get("transfer_ratio_90")
+        ci_text = f" ({ci[0]:.2f} to {ci[1]:.2f})" if ci else ""
+        lines.append(f"| `{r['row']}` | {r['lever']} | {r['pa_mpjpe_mm']:.1f} | {100 * real['ours']:.1f} / {100 * real['floor']:.1f} % | "
+                     f"{100 * syn['ours']:.1f} / {100 * syn['floor']:.1f} % | {t['transfer_ratio@0.1']:.2f}{ci_text} | "
+                     f"{t['transfer_ratio@0.2']:.2f} |")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
+    ap.add_argument("--out", default="out/transfer")
+    ap.add_argument("--docs", default="docs")
+    args = ap.parse_args()
+    out = ROOT / args.out
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "ablation.log"
+    results = []
+    for name in args.rows:
+        print(f"[transfer] {name}: {ROWS[name][0]}", flush=True)
+        results.append(row(name, out, log))
+        r = results[-1]
+        print(f"[transfer] {name}: PA-MPJPE {r['pa_mpjpe_mm']:.1f} mm, transfer ratio {r['transfer']['transfer_ratio@0.1']:.2f}", flush=True)
+    docs = ROOT / args.docs
+    (docs / "transfer.json").write_text(json.dumps(results, indent=1))
+    md = docs / "transfer.md"
+    text = md.read_text() if md.is_file() else f"{BEGIN}\n{END}\n"
+    if BEGIN in text and END in text:
+        head, rest = text.split(BEGIN, 1)
+        text = head + BEGIN + "\n" + table(results) + "\n" + END + rest.split(END, 1)[1]
+        md.write_text(text)
+    print(table(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
