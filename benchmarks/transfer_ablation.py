@@ -34,6 +34,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "base": ("fine-tuned on the base data (procedural sky; the protocol's reference row)", ("base",), "base"),
     "plates": ("backgrounds: real photographs as backplates, horizon-aligned", ("plates",), "plates"),
     "effects": ("camera and sensor effects, occluders (data.effects)", ("base",), "effects"),
+    "truncation": ("close-ups that cut the person (data.effects.truncation_prob 0.5)", ("base",), "truncation"),
     "recipe": ("recipe: backbone at 0.1x the rate, frozen BatchNorm statistics", ("base",), "recipe"),
     "combined": ("backplates + effects + recipe", ("plates",), "combined"),
 }

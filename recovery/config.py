@@ -78,7 +78,7 @@ class EffectsSpec:
     """Camera, sensor and occlusion effects on the training crops (off by default; docs/transfer.md).
 
     Each is drawn per item from its own random stream, so turning one on leaves every other draw as
-    it was. Labels are unchanged: the effects touch pixels only.
+    it was. Labels are unchanged by all but the truncation close-up, whose labels follow its crop.
 
     Attributes:
         blur_prob: probability of a blur: half defocus (Gaussian, sigma uniform in [0.5, blur_px]
@@ -96,6 +96,11 @@ class EffectsSpec:
             in [0.2, occlusion_size] of the crop, at a uniform place. The keypoints under it keep
             their labels (the network learns to infer them).
         occlusion_size: the largest side, fraction of the crop.
+        truncation_prob: probability of a close-up that cuts the person (the geometric effect:
+            labels follow it exactly): the crop side times a factor uniform in
+            [truncation_scale, 0.9], its top edge kept, so that the head stays and the legs or more
+            leave the crop (people in photographs are often seen from the waist or knees up).
+        truncation_scale: the smallest factor.
     """
 
     blur_prob: float = 0.0
@@ -107,18 +112,21 @@ class EffectsSpec:
     lowres: float = 3.0
     occlusion_prob: float = 0.0
     occlusion_size: float = 0.5
+    truncation_prob: float = 0.0
+    truncation_scale: float = 0.45
 
     def __post_init__(self) -> None:
-        probs = (self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob)
+        probs = (self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob, self.truncation_prob)
         ok = all(0 <= p <= 1 for p in probs) and self.blur_px >= 0.5 and 0 <= self.noise <= 0.5
+        ok &= 0.2 <= self.truncation_scale <= 0.9
         ok &= 1 <= self.jpeg_quality <= 95 and self.lowres >= 1 and 0.2 <= self.occlusion_size <= 1
         if not ok:
             raise ValueError(f"data.effects: probabilities in [0, 1], blur_px >= 0.5, noise in [0, 0.5], jpeg_quality in "
-                             f"[1, 95], lowres >= 1, occlusion_size in [0.2, 1]; got {self}")
+                             f"[1, 95], lowres >= 1, occlusion_size in [0.2, 1], truncation_scale in [0.2, 0.9]; got {self}")
 
     @property
     def active(self) -> bool:
-        return max(self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob) > 0 or self.noise > 0
+        return max(self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob, self.truncation_prob) > 0 or self.noise > 0
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ augmentation being per item, the crops).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import itertools
 import json
@@ -293,7 +294,16 @@ class BatchAugment:
         self.part_swap = torch.tensor([0] + [1 + fmt.PART_NAMES.index(mirror_name(n)) for n in fmt.PART_NAMES])
 
     def params(self, epoch: int, i: int) -> CropParams:
-        return draw_params(self.augment, np.random.default_rng([self.seed, epoch, i]))
+        p = draw_params(self.augment, np.random.default_rng([self.seed, epoch, i]))
+        e = self.effects
+        if e is not None and e.truncation_prob > 0:  # its own stream: (seed, epoch, item, 2)
+            u = np.random.default_rng([self.seed, epoch, i, 2]).uniform(size=2)
+            if u[0] < e.truncation_prob:
+                f = e.truncation_scale + (0.9 - e.truncation_scale) * u[1]
+                # the side times f with the top edge kept: the centre moves up by (1 - f) / 2 of the
+                # old side, i.e. (1 - f) / (2 f) of the new one (shifts are in units of the crop side)
+                p = dataclasses.replace(p, scale=p.scale * f, shift=(p.shift[0], p.shift[1] - (1 - f) / (2 * f)))
+        return p
 
     def __call__(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
         b = _stack(items)

@@ -244,3 +244,25 @@ def test_effects_touch_pixels_only_and_are_repeatable(cache, model):
     assert torch.equal(off["image"], plain["image"])  # all off: the crops of before
     with pytest.raises(ValueError, match="data.effects"):
         EffectsSpec(blur_prob=1.5)
+
+
+def test_truncation_close_ups_keep_the_head_and_project_exactly(cache, model):
+    from recovery.config import EffectsSpec
+
+    items = [cache[(1, i)] for i in range(len(cache))]
+    spec = AugmentSpec(rotation_prob=0.0, flip_prob=0.0, scale=0.0, translation=0.0)
+    plain = _augment(cache, model, spec, seed=3)(items)
+    trunc = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names,
+                         effects=EffectsSpec(truncation_prob=1.0, truncation_scale=0.5))
+    b = trunc(items)
+    uv = project(b["keypoints_3d"] + b["transl_cam"][:, None], b["K_crop"])
+    assert (uv - b["keypoints_2d"][..., :2]).abs().max() < 1e-3  # the labels follow the close-up
+    names = list(cache.keypoint_names)
+    head, ankles = names.index("head_top"), [names.index("ankle_l"), names.index("ankle_r")]
+    for i in range(len(items)):
+        f = trunc.params(1, i).scale
+        assert 0.5 <= f <= 0.9
+        # the top edge is kept: a point's height from the top grows by 1 / f
+        top_plain, top_trunc = plain["keypoints_2d"][i, head, 1], b["keypoints_2d"][i, head, 1]
+        assert float(top_trunc) == pytest.approx(float(top_plain) / f, rel=1e-3, abs=1e-3)
+    assert b["keypoints_2d"][:, ankles, 2].sum() < plain["keypoints_2d"][:, ankles, 2].sum()  # legs leave
