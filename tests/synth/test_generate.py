@@ -317,6 +317,64 @@ def test_hdri_backgrounds_validate(tiny, tmp_path):
     assert doc["background"]["kind"] == "hdri" and doc["background"]["file"].endswith(".exr")
 
 
+def _plates(folder: Path, describe: bool) -> Path:
+    """Two backplates, sky blue above 45 % of the height and grass green below; with ``describe``
+    their plates.json gives that horizon."""
+    from PIL import Image
+
+    folder.mkdir()
+    for name, (w, h) in (("a.png", (240, 160)), ("b.png", (200, 200))):
+        img = np.zeros((h, w, 3), np.uint8)
+        img[: int(0.45 * h)] = (90, 150, 230)
+        img[int(0.45 * h):] = (40, 170, 40)
+        Image.fromarray(img).save(folder / name)
+    if describe:
+        (folder / "plates.json").write_text(json.dumps({"a.png": {"horizon": 0.45}, "b.png": {"horizon": 0.45}}))
+    return folder
+
+
+def test_backplates_meet_the_cameras_horizon(tiny, tmp_path):
+    from synth import backgrounds as bg
+
+    cfg = dataclasses.replace(TINY, num=4, camera=dataclasses.replace(TINY.camera, rare_rate=0.0, truncation_rate=0.0),
+                              background=BackgroundConfig(kind="images", folder=str(_plates(tmp_path / "plates", True))))
+    out = tmp_path / "aligned"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    generate(cfg, out, progress=False)
+    assert validate(out).failures == []
+    aligned = 0
+    for key, sample in sorted(read_shard(out / "shard-000000.tar").items()):
+        doc = fmt.decode_sample(sample)
+        row = doc["json"]["background"]["horizon_row"]
+        if row is None:
+            continue
+        aligned += 1
+        cam = doc["json"]["camera"]
+        assert row == pytest.approx(bg.horizon_row(np.asarray(cam["K"]), np.asarray(cam["R"])), abs=1e-4)
+        rgb, mask = doc["rgb"][..., :3].astype(float), doc["mask"] > 0
+        r = int(round(row))
+        if 2 <= r <= rgb.shape[0] - 3:  # sky (blue) just above the horizon, grass (green) below, beside the people
+            above, below = rgb[r - 2][~mask[r - 2]], rgb[r + 2][~mask[r + 2]]
+            assert (above[:, 2] > above[:, 1]).mean() > 0.9 and (below[:, 1] > below[:, 2]).mean() > 0.9, key
+    assert aligned >= 3
+    # off, or a folder without plates.json: the backplate path of before, the same bytes
+    plain = tmp_path / "plain"
+    plain.mkdir()
+    _copy_subjects(tiny, plain)
+    generate(dataclasses.replace(cfg, background=BackgroundConfig(kind="images", folder=str(_plates(tmp_path / "p2", False)))),
+             plain, progress=False)
+    off = tmp_path / "off"
+    off.mkdir()
+    _copy_subjects(tiny, off)
+    generate(dataclasses.replace(cfg, background=dataclasses.replace(cfg.background, align_horizon=False)), off, progress=False)
+    assert _shard_digests(off) == _shard_digests(plain)
+    # the labels never depend on the plate
+    for k, sample in read_shard(out / "shard-000000.tar").items():
+        a, b = fmt.decode_sample(sample)["json"], fmt.decode_sample(read_shard(off / "shard-000000.tar")[k])["json"]
+        assert a["people"] == b["people"] and a["camera"] == b["camera"]
+
+
 def test_skip_bad_lists_the_failing_sample_and_keeps_the_others(tiny, tmp_path, monkeypatch):
     from synth import generate as gen
 
