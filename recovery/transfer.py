@@ -288,6 +288,31 @@ class Domain:
                 "ours": hits(self.ours[s], self.ref[s], vis, self.side[s], alpha),
                 "floor": hits(self.floor[s], self.ref[s], vis, self.side[s], alpha)}
 
+    def extent_ratio(self) -> list[float] | None:
+        """Median over scored people of the width and height of the network's visible joints over
+        the reference's (1: the right size; a network that shrinks the body reads below 1)."""
+        out = []
+        for i in np.flatnonzero(self.ok):
+            v = self.vis[i]
+            ref, ours = self.ref[i, v, :2], self.ours[i, v]
+            span = ref.max(0) - ref.min(0)
+            if (span > 0).all():
+                out.append((ours.max(0) - ours.min(0)) / span)
+        return np.median(np.asarray(out), 0).tolist() if out else None
+
+    def per_joint(self, alpha: float) -> dict[str, dict[str, float]]:
+        """PCK@alpha per COCO joint: the network's and the floor's, over the people it is visible in."""
+        s = self.ok
+        vis = self.vis[s]
+        out = {}
+        for name, f in (("ours", self.ours), ("floor", self.floor)):
+            d = np.linalg.norm(f[s] - self.ref[s, :, :2], axis=-1)
+            with np.errstate(invalid="ignore"):
+                hit = (d < alpha * self.side[s, None]) & vis
+            out[name] = hit.sum(0) / np.maximum(vis.sum(0), 1)
+        return {n: {"ours": float(out["ours"][j]), "floor": float(out["floor"][j]), "people": int(vis[:, j].sum())}
+                for j, n in enumerate(COCO_NAMES)}
+
     def truth_pck(self, alpha: float) -> float | None:
         """The reference against the labels (synthetic only): PCK over joints visible to both."""
         if self.people[0].truth is None:
@@ -314,6 +339,8 @@ def summarise(real: Domain, synthetic: Domain, seed: int = 0) -> dict[str, Any]:
         entry: dict[str, Any] = {"people": len(d.people), "images": len({p.image for p in d.people}),
                                  "scored": int(d.ok.sum()), "reference_failures": int((~d.ok).sum()),
                                  "joints": int(d.vis[d.ok].sum())}
+        entry["extent_ratio"] = d.extent_ratio()
+        entry["per_joint@0.1"] = d.per_joint(0.1)
         for a in THRESHOLDS:
             ours, floor = _pck(d.counts(a))
             entry[f"pck@{a}"] = {"ours": ours, "floor": floor, "gain": ours - floor}
@@ -341,14 +368,16 @@ def summarise(real: Domain, synthetic: Domain, seed: int = 0) -> dict[str, Any]:
 
 def format_report(rep: dict[str, Any]) -> str:
     """``report.md``: one table, the ratio and the settings."""
-    rows = ["| domain | people (scored) | reference failures | PCK@0.1 ours | floor | gain | PCK@0.2 ours | floor | gain | reference vs labels @0.1 |",
-            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    rows = ["| domain | people (scored) | reference failures | PCK@0.1 ours | floor | gain | PCK@0.2 ours | floor | gain | "
+            "reference vs labels @0.1 | size ours / reference (w, h) |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for name, d in rep["domains"].items():
         a, b = d["pck@0.1"], d["pck@0.2"]
         truth = f"{100 * a['reference_vs_labels']:.1f} %" if "reference_vs_labels" in a else "-"
+        size = "{:.2f}, {:.2f}".format(*d["extent_ratio"]) if d.get("extent_ratio") else "-"
         rows.append(f"| {name} | {d['people']} ({d['scored']}) | {d['reference_failures']} | {100 * a['ours']:.1f} % | "
                     f"{100 * a['floor']:.1f} % | {100 * a['gain']:.1f} | {100 * b['ours']:.1f} % | {100 * b['floor']:.1f} % | "
-                    f"{100 * b['gain']:.1f} | {truth} |")
+                    f"{100 * b['gain']:.1f} | {truth} | {size} |")
     ci = rep.get("transfer_ratio_90")
     ci_text = f" (90 % bootstrap interval over people: {ci[0]:.2f} to {ci[1]:.2f})" if ci else ""
     lines = [f"# Transfer check: {rep.get('checkpoint', '')}", "",

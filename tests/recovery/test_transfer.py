@@ -110,7 +110,7 @@ def _domain(name: str, n: int, ours_hits: int, floor_hits: int) -> Domain:
     and the floor's first ``floor_hits`` on the reference, the others 50 px off."""
     k = len(COCO_NAMES)
     ref = np.zeros((n, k, 3))
-    ref[..., 0], ref[..., 1], ref[..., 2] = np.arange(k) * 5.0, 50.0, 1.0
+    ref[..., 0], ref[..., 1], ref[..., 2] = np.arange(k) * 5.0, 10.0 + np.arange(k) * 2.0, 1.0
     ours, floor = ref[..., :2].copy(), ref[..., :2].copy()
     ours[:, ours_hits:, 0] += 50
     floor[:, floor_hits:, 0] += 50
@@ -128,6 +128,8 @@ def test_transfer_ratio_by_hand():
     assert rep["domains"]["synthetic"]["pck@0.1"]["gain"] == pytest.approx(8 / k)
     assert rep["transfer_ratio@0.1"] == pytest.approx(0.25)
     assert rep["transfer_ratio@0.2"] == pytest.approx(0.25)
+    # the network's joints span the reference's except the 50 px shifted ones: wider by 50 px of 80
+    assert rep["domains"]["synthetic"]["extent_ratio"] == pytest.approx([130 / 80, 1.0])
     lo, hi = rep["transfer_ratio_90"]
     assert lo == pytest.approx(0.25) and hi == pytest.approx(0.25)  # identical people: no spread
 
@@ -149,6 +151,10 @@ def test_transfer_report(fake_root, real_folder, fake_reference, tmp_path, capsy
             assert 0.0 <= d[f"pck@{a}"]["ours"] <= 1.0
             assert d[f"pck@{a}"]["gain"] == pytest.approx(d[f"pck@{a}"]["ours"] - 1.0)
     assert "reference_vs_labels" in syn["pck@0.1"] and "reference_vs_labels" not in real["pck@0.1"]
+    for d in (real, syn):
+        assert len(d["extent_ratio"]) == 2 and all(v > 0 for v in d["extent_ratio"])
+        assert set(d["per_joint@0.1"]) == set(COCO_NAMES)
+        assert all(j["floor"] == 1.0 for j in d["per_joint@0.1"].values())
     # no gain over the floor on synthetic images: no skill to transfer, the ratio is undefined
     assert np.isnan(rep["transfer_ratio@0.1"]) and rep["transfer_ratio_90"] is None
     assert rep["reference"] == ["fake"]
