@@ -110,14 +110,20 @@ class HMRTask:
 
     def _load_init(self, checkpoint: str) -> None:
         """``train.init``: start from the weights of a checkpoint of the same network and model file."""
-        from recovery.predictor import load_predictor
+        from recovery.trainer import read_checkpoint, resolve
 
-        src = load_predictor(checkpoint, log=lambda *a: None)
-        if src.task != "hmr_blsm" or src.config.model_hash() != self.cfg.model_hash():
-            raise ValueError(f"{src.path}: train.init is not a checkpoint of this network (model settings differ)")
-        if src.body.num_vertices != self.body.num_vertices or not torch.equal(src.body.template, self.body.template):
-            raise ValueError(f"{src.path}: train.init was made with another BLSM model file")
-        self.model.load_state_dict(src.model.state_dict())
+        path = resolve(checkpoint)
+        ck = read_checkpoint(path)
+        if ck.get("task") != "hmr_blsm" or ck.get("model_hash") != self.cfg.model_hash() or "model" not in ck.get("modules", {}):
+            raise ValueError(f"{path}: train.init is not a checkpoint of this network (model settings differ)")
+        ours = self.meta.get("blsm_model_sha256")
+        if ours is not None and ck.get("blsm_model_sha256") != ours:
+            raise ValueError(f"{path}: train.init was made with another BLSM model file")
+        state = {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"]["model"].items()}
+        try:
+            self.model.load_state_dict(state)
+        except RuntimeError as exc:
+            raise ValueError(f"{path}: train.init's weights do not fit this network ({str(exc).splitlines()[0][:160]})") from None
 
     def _freeze_bn(self) -> None:
         """``train.frozen_bn``: the backbone's BatchNorm layers in eval mode, their affine fixed."""

@@ -22,10 +22,8 @@ from blsm.io import sha256_file
 from recovery.config import RecoveryConfig, config_from_json
 from recovery.geometry import cam_to_translation, project
 from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, flip_average, predict_body
-from recovery.trainer import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_checkpoint, save_atomic
+from recovery.trainer import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, read_checkpoint, resolve, save_atomic
 
-DEFAULT_CHECKPOINT = Path(__file__).parent / "data" / "hmr_blsm_default.pt"
-"""The packaged HMR-BLSM (``recovery export``; how it was trained: docs/recovery.md)."""
 
 TASKS = ("hmr_blsm", "mesh")
 
@@ -125,10 +123,6 @@ class Predictor:
         kp = self.regressor.to(v.dtype) @ v
         kp = kp - kp[self._pelvis()]
         return kp @ UPRIGHT_FACING_CAMERA.to(kp).T
-
-
-def resolve(checkpoint: str | Path) -> Path:
-    return DEFAULT_CHECKPOINT if str(checkpoint) == "default" else Path(checkpoint)
 
 
 def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None, log: Any = print) -> Predictor:

@@ -82,6 +82,15 @@ def save_atomic(obj: Any, path: Path) -> None:
         tmp.unlink(missing_ok=True)
 
 
+DEFAULT_CHECKPOINT = Path(__file__).parent / "data" / "hmr_blsm_default.pt"
+"""The packaged HMR-BLSM (``recovery export``; how it was trained: docs/recovery.md)."""
+
+
+def resolve(checkpoint: str | Path) -> Path:
+    """A checkpoint's path: ``default`` is the packaged one."""
+    return DEFAULT_CHECKPOINT if str(checkpoint) == "default" else Path(checkpoint)
+
+
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load a checkpoint file onto the CPU; a missing, corrupt or foreign file is a one-line ValueError."""
     path = Path(path)
