@@ -36,7 +36,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "effects": ("camera and sensor effects, occluders (data.effects)", ("base",), "effects"),
     "truncation": ("close-ups that cut the person (data.effects.truncation_prob 0.5)", ("base",), "truncation"),
     "recipe": ("recipe: backbone at 0.1x the rate, frozen BatchNorm statistics", ("base",), "recipe"),
-    "combined": ("backplates + effects + recipe", ("plates",), "combined"),
+    "combined": ("every lever: backplates, effects, close-ups, recipe", ("plates",), "combined"),
 }
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 
