@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from recovery import transfer as T  # noqa: E402
-from recovery.predict import read_image  # noqa: E402
+from recovery.predictor import load_predictor  # noqa: E402
 
 
 def checkpoint(row: str) -> str:
@@ -45,14 +45,15 @@ def main() -> int:
     setup = {}
     for name, people in domains.items():
         ref = T.run_reference(people, command, cache)
-        vis = T.visible_joints(ref, [read_image(p.image).shape[:2] for p in people])
+        vis = T.visible_joints(ref, [p.size for p in people])
         centre, side, ok = T.person_boxes(ref, vis)
         floor = T.mean_pose_floor(ref, vis, centre, side, ok)
         setup[name] = (people, ref, vis, centre, side, ok)
         hits[name] = {"joints": vis[ok].sum(1), "floor": T.hits(floor[ok], ref[ok], vis[ok], side[ok], 0.1)}
     for row in [args.reference, *args.rows]:
+        pr = load_predictor(checkpoint(row))
         for name, (people, ref, vis, centre, side, ok) in setup.items():
-            ours, _ = T.predict_joints(checkpoint(row), people, centre, side, ok)
+            ours, _ = T.predict_joints(pr, people, centre, side, ok)
             hits[name][row] = T.hits(ours[ok], ref[ok], vis[ok], side[ok], 0.1)
     rng = np.random.default_rng(0)
     out = []

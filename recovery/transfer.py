@@ -77,6 +77,7 @@ class Person:
 
     image: Path
     box: tuple[float, float, float, float]
+    size: tuple[int, int]  # the image's (height, width)
     K: np.ndarray | None = None  # the true camera (synthetic); None: recovery predict's default
     truth: np.ndarray | None = None  # (17, 3) true 2D joints and in-frame flag (synthetic)
 
@@ -110,7 +111,7 @@ def read_boxes(folder: str | Path) -> list[Person]:
             ok = isinstance(box, list) and len(box) == 4 and all(isinstance(v, (int, float)) for v in box)
             if not ok or not (0 <= box[0] < box[2] <= w and 0 <= box[1] < box[3] <= h):
                 raise ValueError(f"{path}: box {box} of {name!r} is not [x0, y0, x1, y1] inside the {w} x {h} image")
-            people.append(Person(image, tuple(float(v) for v in box)))
+            people.append(Person(image, tuple(float(v) for v in box), (h, w)))
     return people
 
 
@@ -140,7 +141,8 @@ def synthetic_people(dataset: str | Path, folder: Path, max_people: int) -> list
         if not image.is_file():
             with atomic_write(image, "wb") as fh:
                 fh.write(index.read(i, ["rgb.png"])["rgb.png"])
-        people.append(Person(image, tuple(float(v) for v in box), np.asarray(meta["camera"]["K"], float), truth))
+        size = (int(meta["image"]["height"]), int(meta["image"]["width"]))
+        people.append(Person(image, tuple(float(v) for v in box), size, np.asarray(meta["camera"]["K"], float), truth))
     index.close()
     return people
 
@@ -187,7 +189,8 @@ def run_reference(people: list[Person], command: list[str], cache_path: Path) ->
 
 
 def visible_joints(ref: np.ndarray, sizes: list[tuple[int, int]]) -> np.ndarray:
-    """(N, 17) the reference joints that count: visibility >= VISIBILITY and inside their image."""
+    """(N, 17) the reference joints that count: visibility >= VISIBILITY and inside their image
+    (``sizes``: each person's image (height, width))."""
     wh = np.asarray([(w, h) for h, w in sizes], float)[:, None]
     with np.errstate(invalid="ignore"):
         inside = (ref[..., :2] >= 0).all(-1) & (ref[..., :2] < wh).all(-1)
@@ -218,22 +221,26 @@ def mean_pose_floor(ref: np.ndarray, vis: np.ndarray, centre: np.ndarray, side: 
     return centre[:, None] + side[:, None, None] * med[None]
 
 
-def hits(pred: np.ndarray, ref: np.ndarray, vis: np.ndarray, side: np.ndarray, alpha: float) -> np.ndarray:
-    """(N,) the visible reference joints within ``alpha * side`` of ``pred`` (per person)."""
+def correct(pred: np.ndarray, ref: np.ndarray, vis: np.ndarray, side: np.ndarray, alpha: float) -> np.ndarray:
+    """(N, 17) the visible reference joints within ``alpha * side`` of ``pred``."""
     dist = np.linalg.norm(pred - ref[..., :2], axis=-1)
     with np.errstate(invalid="ignore"):
-        return ((dist < alpha * side[:, None]) & vis).sum(1)
+        return (dist < alpha * side[:, None]) & vis
 
 
-def predict_joints(checkpoint: str | Path, people: list[Person], centre: np.ndarray, side: np.ndarray, ok: np.ndarray,
-                   flip: bool = False, batch: int = 32) -> tuple[np.ndarray, list[dict[str, Any]]]:
-    """(N, 17, 2) the network's joints in image pixels (NaN where not scored) and, per scored
-    person, what the sheet draws (crop, mesh, K_crop, affine)."""
+def hits(pred: np.ndarray, ref: np.ndarray, vis: np.ndarray, side: np.ndarray, alpha: float) -> np.ndarray:
+    """(N,) how many of :func:`correct`'s joints each person has."""
+    return correct(pred, ref, vis, side, alpha).sum(1)
+
+
+def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.ndarray, ok: np.ndarray,
+                   batch: int = 32) -> tuple[np.ndarray, list[dict[str, Any]]]:
+    """(N, 17, 2) the joints of predictor ``pr`` (:func:`recovery.predictor.load_predictor`) in
+    image pixels (NaN where not scored) and, per scored person, what the sheet draws (crop, mesh,
+    K_crop, affine)."""
     from recovery.predict import read_image
-    from recovery.predictor import load_predictor
     from synth.data import crop_affine, warp_to_crop
 
-    pr = load_predictor(checkpoint).use_flip(flip)
     ids = [pr.body.keypoint_names.index(n) for n in COCO_NAMES]
     out = np.full((len(people), len(COCO_NAMES), 2), np.nan)
     views: list[dict[str, Any]] = []
@@ -304,12 +311,8 @@ class Domain:
         """PCK@alpha per COCO joint: the network's and the floor's, over the people it is visible in."""
         s = self.ok
         vis = self.vis[s]
-        out = {}
-        for name, f in (("ours", self.ours), ("floor", self.floor)):
-            d = np.linalg.norm(f[s] - self.ref[s, :, :2], axis=-1)
-            with np.errstate(invalid="ignore"):
-                hit = (d < alpha * self.side[s, None]) & vis
-            out[name] = hit.sum(0) / np.maximum(vis.sum(0), 1)
+        out = {name: correct(f[s], self.ref[s], vis, self.side[s], alpha).sum(0) / np.maximum(vis.sum(0), 1)
+               for name, f in (("ours", self.ours), ("floor", self.floor))}
         return {n: {"ours": float(out["ours"][j]), "floor": float(out["floor"][j]), "people": int(vis[:, j].sum())}
                 for j, n in enumerate(COCO_NAMES)}
 
@@ -433,18 +436,14 @@ def reference_command(spec: str | None) -> list[str]:
     return [str(python), str(REFERENCE_SCRIPT)]
 
 
-def _domain(name: str, people: list[Person], command: list[str], out: Path, checkpoint: str | Path, flip: bool
-            ) -> tuple[Domain, list[dict[str, Any]]]:
-    from recovery.predict import read_image
-
+def _domain(name: str, people: list[Person], command: list[str], out: Path, pr: Any) -> tuple[Domain, list[dict[str, Any]]]:
     if not people:
         raise ValueError(f"{name}: no people to score")
     ref = run_reference(people, command, out / "reference.json")
-    sizes = {p.image: read_image(p.image).shape[:2] for p in people}
-    vis = visible_joints(ref, [sizes[p.image] for p in people])
+    vis = visible_joints(ref, [p.size for p in people])
     centre, side, ok = person_boxes(ref, vis)
     floor = mean_pose_floor(ref, vis, centre, side, ok)
-    ours, views = predict_joints(checkpoint, people, centre, side, ok, flip=flip)
+    ours, views = predict_joints(pr, people, centre, side, ok)
     return Domain(name, people, ref, vis, centre, side, ok, ours, floor), views
 
 
@@ -452,20 +451,21 @@ def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path
                  reference: str | None = None, synthetic_people_max: int = 400, flip: bool = False,
                  sheet_count: int = 48) -> dict[str, Any]:
     """The whole check (module docstring); returns the report written to ``OUT/report.json``."""
+    from recovery.predictor import load_predictor
+
     out = Path(out)
     command = reference_command(reference)
+    pr = load_predictor(checkpoint).use_flip(flip)  # a bad checkpoint stops the run before any work
     real_people = read_boxes(real)
     out.mkdir(parents=True, exist_ok=True)
     syn_people = synthetic_people(synthetic, out / "synthetic_images", synthetic_people_max)
-    d_real, v_real = _domain("real", real_people, command, out, checkpoint, flip)
-    d_syn, v_syn = _domain("synthetic", syn_people, command, out, checkpoint, flip)
+    d_real, v_real = _domain("real", real_people, command, out, pr)
+    d_syn, v_syn = _domain("synthetic", syn_people, command, out, pr)
     rep = summarise(d_real, d_syn)
     cache = json.loads((out / "reference.json").read_text())
     rep.update(checkpoint=str(checkpoint), real=str(real), synthetic=str(synthetic), flip_test=flip,
                reference=sorted({v["reference"] for v in cache.values()}), command=" ".join(sys.argv))
-    from recovery.predictor import load_predictor
-
-    faces = load_predictor(checkpoint).body.faces.numpy()
+    faces = pr.body.faces.numpy()
     contact_sheet(d_real, v_real, faces, out / "sheet_real.png", sheet_count)
     contact_sheet(d_syn, v_syn, faces, out / "sheet_synthetic.png", sheet_count)
     with atomic_write(out / "report.json", "w") as fh:

@@ -178,8 +178,6 @@ def load_hdri(path: str | Path, width: int) -> np.ndarray:
 
 def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Generator) -> np.ndarray:
     """A random crop of ``image`` at the target aspect (at least 60 % of the shorter side), resized."""
-    import OpenImageIO as oiio
-
     h, w = image.shape[:2]
     aspect = width / height
     ch = int(min(h, w / aspect) * rng.uniform(0.6, 1.0))
@@ -187,8 +185,14 @@ def crop_backplate(image: np.ndarray, width: int, height: int, rng: np.random.Ge
     ch = max(1, ch)
     y0 = int(rng.integers(0, h - ch + 1))
     x0 = int(rng.integers(0, w - cw + 1))
-    buf = oiio.ImageBuf(np.ascontiguousarray(image[y0 : y0 + ch, x0 : x0 + cw]))
-    out = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, 3))
+    return _resized(image[y0 : y0 + ch, x0 : x0 + cw], width, height)
+
+
+def _resized(crop: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``crop`` resized to ``width x height`` (OpenImageIO's default filter), float32 (H, W, 3)."""
+    import OpenImageIO as oiio
+
+    out = oiio.ImageBufAlgo.resize(oiio.ImageBuf(np.ascontiguousarray(crop)), roi=oiio.ROI(0, width, 0, height, 0, 1, 0, 3))
     return np.asarray(out.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
 
 
@@ -238,8 +242,6 @@ def crop_backplate_at_horizon(image: np.ndarray, horizon: float, width: int, hei
     the photograph's ground at eye level. The crop is as large as the horizon allows, times a
     factor uniform in [0.6, 1] (at least 25 % of the plate's shorter side); None when no such crop
     fits in the plate."""
-    import OpenImageIO as oiio
-
     h, w = image.shape[:2]
     aspect = width / height
     hz, t = horizon * h, row / height  # plate pixels; the horizon's place in the output, 0 top .. 1 bottom
@@ -256,9 +258,7 @@ def crop_backplate_at_horizon(image: np.ndarray, horizon: float, width: int, hei
     cw = max(1, int(round(ch * aspect)))
     y0 = min(max(int(round(hz - t * ch)), 0), h - ch)  # whole plate pixels: the horizon within one of them
     x0 = int(rng.integers(0, w - cw + 1))
-    buf = oiio.ImageBuf(np.ascontiguousarray(image[y0:y0 + ch, x0:x0 + cw]))
-    out = oiio.ImageBufAlgo.resize(buf, roi=oiio.ROI(0, width, 0, height, 0, 1, 0, 3))
-    return np.asarray(out.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
+    return _resized(image[y0:y0 + ch, x0:x0 + cw], width, height)
 
 
 @functools.lru_cache(maxsize=4)

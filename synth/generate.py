@@ -302,7 +302,7 @@ class SampleMaker:
         self._rigs[si] = rig
         return rig
 
-    def background(self, rng: np.random.Generator, camera: Any = None) -> bg.Background:
+    def background(self, rng: np.random.Generator, camera: Any) -> bg.Background:
         b, cam = self.cfg.background, self.cfg.camera
         scale = float(2.0 ** rng.uniform(*b.exposure_ev))
         rot = float(rng.uniform(0, 2 * math.pi))
@@ -320,7 +320,7 @@ class SampleMaker:
             plate = None
             if self.horizons:  # a described bank: the plate's horizon on the camera's (plates.json)
                 hz = self.horizons.get(f.name)
-                row = bg.horizon_row(camera.K, camera.R) if hz is not None and camera is not None else None
+                row = bg.horizon_row(camera.K, camera.R) if hz is not None else None
                 if row is not None:
                     plate = bg.crop_backplate_at_horizon(self._bg_cache[f], hz, cam.width, cam.height, row, rng)
                 extra = {"horizon_row": row if plate is not None else None}

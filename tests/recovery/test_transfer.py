@@ -114,7 +114,7 @@ def _domain(name: str, n: int, ours_hits: int, floor_hits: int) -> Domain:
     ours, floor = ref[..., :2].copy(), ref[..., :2].copy()
     ours[:, ours_hits:, 0] += 50
     floor[:, floor_hits:, 0] += 50
-    people = [Person(Path(f"{name}{i}.png"), (0, 0, 100, 100)) for i in range(n)]
+    people = [Person(Path(f"{name}{i}.png"), (0, 0, 100, 100), (100, 100)) for i in range(n)]
     return Domain(name, people, ref, np.ones((n, k), bool), np.full((n, 2), 50.0), np.full(n, 100.0),
                   np.ones(n, bool), ours, floor)
 
