@@ -22,7 +22,11 @@ Every person of a ``synth`` dataset is cropped as in training (:class:`synth.dat
   generalised Procrustes mean of the people's joints, similarity-aligned to each person: the best a
   constant prediction does in PA-MPJPE) and the **mean pose** (the training set's mean parameters
   Theta_0 of the network, translated to the best position, i.e. centroid-aligned);
-- the same metrics split by view (normal, rare), truncation and people per image.
+- the same metrics split by view (normal, rare), truncation and people per image;
+- on a sequence dataset (docs/video.md), ``temporal`` (:mod:`recovery.temporal`): each person's
+  predictions over runs of consecutive in-view frames, ``accel_error_mm`` (mm/frame^2, VIBE's
+  acceleration error), ``accel_mm`` / ``label_accel_mm`` and ``jitter_km_s3`` / ``label_jitter_km_s3``,
+  on the pelvis-aligned camera-frame evaluation joints.
 
 ``DIR/sheet.png`` shows people by PA-MPJPE quartile (thesis Fig. 4.7): crop, mesh overlay, parts
 overlay and a side view (prediction blue, labels grey).
@@ -46,6 +50,7 @@ from recovery.mesh_data import body_frame_vertices
 from recovery.models.hmr import body_outputs
 from recovery.predictor import Predictor, load_predictor
 from recovery.raster import rasterize_labels
+from recovery.temporal import format_temporal, sequence_items, temporal_metrics
 from recovery.viz import face_parts, label_image, overlay, parts_overlay, side_view
 from synth.data import SynthDataset
 
@@ -149,6 +154,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     if list(ds.keypoint_names) != list(pr.body.keypoint_names):
         raise ValueError(f"{dataset}: its keypoint_names are not the checkpoint's BLSM model's")
     info = person_info(ds)
+    seq_info = sequence_items(ds)
     n = len(ds) if not max_people else min(max_people, len(ds))
     chosen = spread_indices(len(ds), n)
     sub = torch.utils.data.Subset(ds, chosen.tolist())
@@ -173,6 +179,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
                                                      "roughness_mm", "label_roughness_mm")}
     confs: list[np.ndarray] = []
     gt_joints: list[torch.Tensor] = []
+    pred_joints: list[torch.Tensor] = []
     keep: dict[str, list[Any]] = {"image": [], "pred_v": [], "gt_v": [], "K": [], "transl": [], "gt_parts": [], "gt_mask": []}
     done = 0
     for b in loader:
@@ -197,6 +204,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
         rows["mean_pose_mpjpe_mm"] += (M.mpjpe(mk - mk.mean(1, keepdim=True) + g3.mean(1, keepdim=True), g3) * 1000).tolist()
         rows["mean_pose_pa_mpjpe_mm"] += (M.pa_mpjpe(mk, g3) * 1000).tolist()
         gt_joints.append(g3.double())
+        pred_joints.append(p3.detach().double())
         if po.pose is not None:
             poses["pred"].append(po.pose)
             poses["label"].append(b["pose"])
@@ -246,6 +254,9 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
         "subjects": int(len(set(info["subject"][chosen].tolist()))),
         "seconds": round(time.perf_counter() - t0, 1),
     }
+    if seq_info is not None:
+        cols = (seq_info[k][chosen] for k in ("sequence", "track", "frame", "fps"))
+        res["temporal"] = temporal_metrics(torch.cat(pred_joints), joints, *cols, pelvis=PELVIS).to_dict()
     res["relative"] = {
         "pa_mpjpe_vs_fixed_skeleton": res["pa_mpjpe_mm"] / res["baselines"]["fixed_skeleton"]["pa_mpjpe_mm"] - 1,
         "mpjpe_vs_mean_pose": res["mpjpe_mm"] / res["baselines"]["mean_pose"]["mpjpe_mm"] - 1,
@@ -314,4 +325,6 @@ def format_report(res: dict[str, Any]) -> str:
     for name, groups in res["splits"].items():
         parts = [f"{g}: {v['people']} people" + (f", PA-MPJPE {v['pa_mpjpe_mm']:.1f}" if v["people"] else "") for g, v in groups.items()]
         lines.append(f"  by {name}: " + "; ".join(parts))
+    if res.get("temporal"):
+        lines.append(format_temporal(res["temporal"]))
     return "\n".join(lines)

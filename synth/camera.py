@@ -108,7 +108,9 @@ def _box(cam: Camera, points: np.ndarray) -> np.ndarray:
     return np.concatenate([uv.min(0), uv.max(0)])
 
 
-def _aimed(eye: np.ndarray, target: np.ndarray, roll: float, focal_px: float, cfg: CameraConfig) -> Camera:
+def aimed_camera(eye: np.ndarray, target: np.ndarray, roll: float, focal_px: float, cfg: CameraConfig) -> Camera:
+    """The camera at ``eye`` looking at ``target`` (world up +Y), rolled by ``roll`` radians about its
+    optical axis, focal length ``focal_px`` pixels, principal point at the image centre."""
     cam = look_at_camera(eye, target, width=cfg.width, height=cfg.height)
     c, s = math.cos(roll), math.sin(roll)
     r_roll = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # about the optical axis
@@ -118,9 +120,10 @@ def _aimed(eye: np.ndarray, target: np.ndarray, roll: float, focal_px: float, cf
 
 
 def sample_camera(
-    points: np.ndarray, cfg: CameraConfig, rng: np.random.Generator
+    points: np.ndarray, cfg: CameraConfig, rng: np.random.Generator, roll_deg: float = 0.0
 ) -> tuple[Camera, dict[str, Any]]:
-    """Sample a camera framing ``points`` (the person's vertices or keypoints, world metres).
+    """Sample a camera framing ``points`` (the person's vertices or keypoints, world metres);
+    ``roll_deg`` is added to the drawn roll (a portrait camera's 90 degrees).
 
     Returns:
         The camera and a dict of what was drawn: ``view`` ("normal", "above", "below",
@@ -137,7 +140,7 @@ def sample_camera(
     f_px = f_mm / SENSOR_WIDTH_MM * cfg.width
     yaw = math.radians(rng.uniform(*cfg.yaw_deg))
     elev = math.radians(rng.uniform(*cfg.elevation_deg))
-    roll = math.radians(rng.normal(0.0, cfg.roll_sd_deg))
+    roll = math.radians(rng.normal(0.0, cfg.roll_sd_deg) + roll_deg)
     view = "normal"
     if rng.uniform() < cfg.rare_rate:
         view = ("above", "below", "upside_down")[int(rng.integers(3))]
@@ -163,7 +166,7 @@ def sample_camera(
     radius = float(np.linalg.norm(pts - centre, axis=1).max())
     dist = max(2.0 * radius, f_px * 2.0 * radius / (fill * cfg.height))
     for _ in range(3):
-        cam = _aimed(eye(dist), centre, roll, f_px, cfg)
+        cam = aimed_camera(eye(dist), centre, roll, f_px, cfg)
         if (cam.world_to_camera(pts)[:, 2] <= 0.05).any():
             dist *= 1.5
             continue
@@ -171,7 +174,7 @@ def sample_camera(
         size = max(b[3] - b[1], (b[2] - b[0]) * cfg.height / cfg.width)
         dist *= size / (fill * cfg.height)
         dist = max(dist, 1.05 * radius + 0.1)
-    cam = _aimed(eye(dist), centre, roll, f_px, cfg)
+    cam = aimed_camera(eye(dist), centre, roll, f_px, cfg)
     b = _box(cam, pts)
     if not truncated:
         # Whole person in frame: back off until the box fits inside the image with a margin.
@@ -179,7 +182,7 @@ def sample_camera(
             if b[0] >= 1 and b[1] >= 1 and b[2] <= cfg.width - 1 and b[3] <= cfg.height - 1:
                 break
             dist *= 1.1
-            cam = _aimed(eye(dist), centre, roll, f_px, cfg)
+            cam = aimed_camera(eye(dist), centre, roll, f_px, cfg)
             b = _box(cam, pts)
         else:  # pragma: no cover - needs a field of view smaller than the person
             raise ValueError("cannot fit the person in frame; widen focal_mm or lower fill")

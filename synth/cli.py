@@ -4,8 +4,9 @@
                    [--engine local|ray [--address ADDR]] [--part I/N]
     synth merge DIR
     synth preview DIR --out PNG [--count N]
+    synth preview DIR --sequence S [--video OUT.gif|OUT.png] [--sheet PNG] [--count N] [--scale K]
     synth validate DIR
-    synth export DIR --format spin|coco --out DIR2 [--overwrite]
+    synth export DIR --format spin|coco|sequences --out DIR2 [--overwrite]
 
 Errors in input (a config key, a scan, a folder, an output folder another run is writing, a full
 disk) are one line, ``synth: error: ...``, exit status 2; a failed validation exits with status 1.
@@ -55,10 +56,20 @@ def _merge(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from synth.preview import contact_sheet
+    from synth.preview import contact_sheet, sequence_sheet, sequence_video
 
-    path = contact_sheet(args.dataset, args.out, count=args.count)
-    print(path)
+    if (args.video is not None or args.sheet is not None) != (args.sequence is not None):
+        raise ValueError("--video and --sheet need --sequence S, and --sequence needs --video or --sheet")
+    if args.out is None and args.video is None and args.sheet is None:
+        raise ValueError("preview needs --out PNG, or --sequence S with --video OUT and/or --sheet PNG")
+    if args.count < 1 or args.scale < 1:
+        raise ValueError(f"--count and --scale must be positive, got {args.count}, {args.scale}")
+    if args.out is not None:
+        print(contact_sheet(args.dataset, args.out, count=args.count))
+    if args.video is not None:
+        print(sequence_video(args.dataset, args.sequence, args.video, scale=args.scale))
+    if args.sheet is not None:
+        print(sequence_sheet(args.dataset, args.sequence, args.sheet, count=args.count, scale=args.scale))
     return 0
 
 
@@ -104,17 +115,23 @@ def main(argv: list[str] | None = None) -> int:
     m = sub.add_parser("merge", help="join the parts of a --part I/N run into one dataset")
     m.add_argument("dataset", type=Path)
     m.set_defaults(run=_merge)
-    p = sub.add_parser("preview", help="contact sheet with keypoint, mask and part overlays")
+    p = sub.add_parser(
+        "preview", help="contact sheets with keypoint, mask and part overlays; a sequence's animation"
+    )
     p.add_argument("dataset", type=Path)
-    p.add_argument("--out", required=True, type=Path)
-    p.add_argument("--count", type=int, default=8)
+    p.add_argument("--out", type=Path, help="PNG contact sheet of the first --count samples")
+    p.add_argument("--count", type=int, default=8, help="samples of --out, frames of --sheet (default 8)")
+    p.add_argument("--sequence", type=int, help="the sequence of --video and --sheet (a sequence dataset)")
+    p.add_argument("--video", type=Path, help="animated GIF (.gif) or PNG (.png) of --sequence at its fps")
+    p.add_argument("--sheet", type=Path, help="PNG of --count evenly spaced frames of --sequence")
+    p.add_argument("--scale", type=int, default=1, help="enlargement of --video and --sheet (default 1)")
     p.set_defaults(run=_preview)
     v = sub.add_parser("validate", help="check every sample; non-zero exit on any failure")
     v.add_argument("dataset", type=Path)
     v.set_defaults(run=_validate)
-    e = sub.add_parser("export", help="SPIN/HMR npz or COCO keypoint JSON")
+    e = sub.add_parser("export", help="SPIN/HMR npz, COCO keypoint JSON or one npz per video sequence")
     e.add_argument("dataset", type=Path)
-    e.add_argument("--format", required=True, choices=("spin", "coco"))
+    e.add_argument("--format", required=True, choices=("spin", "coco", "sequences"))
     e.add_argument("--out", required=True, type=Path)
     e.add_argument("--overwrite", action="store_true")
     e.set_defaults(run=_export)

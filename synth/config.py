@@ -311,6 +311,113 @@ class HairConfig:
 
 
 @dataclass(frozen=True)
+class CameraPaths:
+    """Relative weights of the camera paths of a sequence (:mod:`synth.camera_paths`; 0 leaves a
+    path out) and their parameters, each drawn uniformly per sequence from its ``[low, high]``."""
+
+    static: float = 1.0
+    pan: float = 1.0
+    dolly: float = 1.0
+    orbit: float = 1.0
+    tracking: float = 1.0
+    zoom: float = 1.0
+    handheld: float = 1.0
+    portrait: float = 0.5
+    long_lens: float = 0.5
+    pan_smoothing_s: float = 0.4
+    dolly_m: tuple[float, float] = (0.5, 2.0)
+    orbit_deg_s: tuple[float, float] = (10.0, 40.0)
+    tracking_smoothing_s: float = 0.8
+    zoom_ratio: tuple[float, float] = (1.5, 3.0)
+    shake_low_deg: tuple[float, float] = (0.3, 1.5)
+    shake_low_hz: tuple[float, float] = (0.2, 1.0)
+    shake_high_deg: tuple[float, float] = (0.03, 0.15)
+    shake_high_hz: tuple[float, float] = (6.0, 12.0)
+    shake_m: tuple[float, float] = (0.005, 0.02)
+    long_lens_mm: tuple[float, float] = (135.0, 300.0)
+
+    def weights(self) -> dict[str, float]:
+        from synth.camera_paths import PATHS
+
+        return {k: float(getattr(self, k)) for k in PATHS}
+
+    def __post_init__(self) -> None:
+        w = self.weights()
+        if min(w.values()) < 0 or sum(w.values()) <= 0:
+            raise ValueError(f"sequence.cameras weights must be non-negative, not all 0, got {w}")
+        for name in ("dolly_m", "orbit_deg_s", "zoom_ratio", "shake_low_deg", "shake_low_hz", "shake_high_deg",
+                     "shake_high_hz", "shake_m", "long_lens_mm"):
+            v = getattr(self, name)
+            if len(v) != 2 or not 0 <= v[0] <= v[1]:
+                raise ValueError(f"sequence.cameras.{name} must be [low, high] with 0 <= low <= high, got {list(v)}")
+        if self.zoom_ratio[0] < 1.0:
+            raise ValueError(f"sequence.cameras.zoom_ratio must be >= 1 (zoom in or out by it), got {list(self.zoom_ratio)}")
+        if self.long_lens_mm[0] <= 0:
+            raise ValueError(f"sequence.cameras.long_lens_mm must be positive, got {list(self.long_lens_mm)}")
+        if self.pan_smoothing_s < 0 or self.tracking_smoothing_s < 0:
+            raise ValueError("sequence.cameras pan_smoothing_s and tracking_smoothing_s must be >= 0")
+
+
+@dataclass(frozen=True)
+class MotionBlur:
+    """Motion blur (off by default): each frame is the mean of ``subframes`` renders at times spread
+    evenly over the open shutter, ``shutter`` of the frame interval (0.5: a 180-degree shutter),
+    centred on the frame's time; the labels are those of the centre sub-frame (``subframes`` is odd),
+    i.e. of the frame's own time. Costs ``subframes`` renders a frame."""
+
+    enabled: bool = False
+    subframes: int = 5
+    shutter: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.subframes < 1 or self.subframes % 2 == 0 or self.subframes > 64:
+            raise ValueError(f"sequence.motion_blur.subframes must be odd, 1 to 63, got {self.subframes}")
+        if not 0 < self.shutter <= 1:
+            raise ValueError(f"sequence.motion_blur.shutter must be in (0, 1], got {self.shutter}")
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    """Ground contact (:func:`synth.sequence.contact`): a body region touches the ground ``y = 0``
+    when one of its vertices is within ``distance`` metres of it and slower than ``speed`` m/s. The
+    field's velocity rule, reported beside it: the region's keypoint slower than ``velocity_rule``
+    m/s."""
+
+    distance: float = 0.03
+    speed: float = 0.3
+    velocity_rule: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.distance <= 0 or self.speed <= 0 or self.velocity_rule <= 0:
+            raise ValueError("sequence.contact distance, speed and velocity_rule must be positive")
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """Video (docs/video.md): with ``enabled``, ``num`` counts sequences of ``frames`` frames at
+    ``fps``, ``per_shard`` sequences a shard. Each person plays a motion-library clip (root
+    trajectory included, resampled to ``fps``) in one world frame, with one subject, background and
+    light throughout, under a camera path drawn by ``cameras``' weights. Sequences need
+    ``poses.source: library`` and clips at least ``frames / fps`` seconds long."""
+
+    enabled: bool = False
+    frames: int = 90
+    fps: float = 30.0
+    per_shard: int = 1
+    cameras: CameraPaths = field(default_factory=CameraPaths)
+    motion_blur: MotionBlur = field(default_factory=MotionBlur)
+    contact: ContactConfig = field(default_factory=ContactConfig)
+
+    def __post_init__(self) -> None:
+        if not 2 <= self.frames <= 100000:
+            raise ValueError(f"sequence.frames must be in [2, 100000], got {self.frames}")
+        if not 1.0 <= self.fps <= 240.0:
+            raise ValueError(f"sequence.fps must be in [1, 240], got {self.fps}")
+        if self.per_shard < 1:
+            raise ValueError(f"sequence.per_shard must be positive, got {self.per_shard}")
+
+
+@dataclass(frozen=True)
 class GeneratorConfig:
     """The top level of a ``configs/synth/*.yaml`` file.
 
@@ -334,6 +441,7 @@ class GeneratorConfig:
     hair: HairConfig = field(default_factory=HairConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     engine: EngineConfig = field(default_factory=EngineConfig)
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
 
     def __post_init__(self) -> None:
         if self.seed < 0:
@@ -346,6 +454,18 @@ class GeneratorConfig:
             raise ValueError(f"pipeline must be rigged, raw or blsm, got {self.pipeline!r}")
         if self.subdivide and self.pipeline != "blsm":
             raise ValueError("subdivide applies to the blsm pipeline only")
+        if self.sequence.enabled:
+            if self.poses.source != "library":
+                raise ValueError("sequence.enabled needs poses.source: library (each person plays a motion clip)")
+            if self.pipeline == "raw":
+                raise ValueError("sequence.enabled needs a posable pipeline (rigged or blsm), not raw")
+            if self.background.kind == "images":
+                moving = [k for k, w in self.sequence.cameras.weights().items() if w > 0 and k not in ("static", "long_lens")]
+                if moving:
+                    raise ValueError(f"sequence: a backplate photograph cannot follow a moving camera ({moving[0]}); "
+                                     "use background kind default or hdri, or only static and long_lens cameras")
+            if self.num * self.sequence.frames > MAX_SAMPLES:
+                raise ValueError(f"num * sequence.frames must be at most {MAX_SAMPLES}, got {self.num * self.sequence.frames}")
         need, limit = render_memory_bytes(self.camera.width, self.camera.height, self.render.spp) / 2**30, max_render_gib()
         if need > limit:
             raise ValueError(

@@ -14,6 +14,7 @@ failed write (a full disk) keeps the finished shards for ``--resume``.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import math
 import multiprocessing as mp
@@ -39,6 +40,7 @@ from synth import lock as out_lock
 from synth.camera import outline_index, sample_camera
 from synth.config import GeneratorConfig
 from synth.render import PeopleRenderer, RenderMesh, people_window
+from synth.sequence import move_person, sequence_rng
 from synth.shards import ShardWriter, SkipSample, WriteError, sample_rng
 from synth.subjects import Subject, anny_subject, load_subject, model_fingerprint, pose_subject, save_subject
 
@@ -264,6 +266,15 @@ class SampleMaker:
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, dict[str, Any]] = {}
         self._renderers: dict[tuple, PeopleRenderer] = {}
+        self._sequences: Any = None
+
+    def sequences(self) -> Any:
+        """This worker's :class:`synth.sequence.SequenceMaker` (made on first use)."""
+        if self._sequences is None:
+            from synth.sequence import SequenceMaker
+
+            self._sequences = SequenceMaker(self)
+        return self._sequences
 
     # -- per subject, cached: render mesh, linear texture, face bones
     def rig(self, si: int) -> dict[str, Any]:
@@ -355,28 +366,10 @@ class SampleMaker:
         return r
 
     def make(self, index: int, rng: np.random.Generator) -> dict[str, bytes]:
-        cfg, m = self.cfg, self.model
+        cfg = self.cfg
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
-        people: list[dict[str, Any]] = []
-        for _ in range(n):
-            si = int(rng.integers(len(self.subjects)))
-            s = self.subjects[si]
-            age = s.meta.get("phenotype", {}).get("age_years")
-            x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0)
-            p = pose_subject(s, m, {"pose": x, "global_orient": orient, "transl": np.zeros(3, np.float32)}, cfg.pipeline)
-            rig = self.rig(si)
-            if rig["parents"] is not None:
-                par = rig["parents"]
-                p["vertices"] = 0.5 * (p["vertices"][par[:, 0]] + p["vertices"][par[:, 1]])
-            if "hair" in rig:
-                from synth.hair import pose_hair
-
-                p["hair"] = pose_hair(rig["hair"][1], p["transforms"])
-            p.update(subject=s.id, si=si, motion=motion, rig=rig)
-            people.append(p)
-        # The hull vertices of each posed mesh (hair included): footprints, framing and full boxes
-        # only need the extremes, which these hold (synth.camera.outline_index).
-        shells = [p["vertices"] if "hair" not in p else np.concatenate([p["vertices"], p["hair"]]) for p in people]
+        people = [self.pose_person(rng) for _ in range(n)]
+        shells = [self.shell(p) for p in people]
         hulls = [outline_index(v) for v in shells]
         foot = []
         for v, idx in zip(shells, hulls):
@@ -385,14 +378,51 @@ class SampleMaker:
             foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
         for p, v, idx, d in zip(people, shells, hulls, place_people(foot, cfg.people.gap, rng)):
             d = d - np.array([0.0, p["vertices"][:, 1].min(), 0.0])  # the body's feet on the floor y = 0
-            for k in ("vertices", "keypoints", "joints", "hair"):
-                if k in p:
-                    p[k] = (p[k] + d).astype(np.float32)
-            p["transl"] = (p["transl"] + d).astype(np.float32)
+            move_person(p, d)
             p["outline"] = (v[idx] + d).astype(np.float32)
         outline = np.concatenate([p["outline"] for p in people])  # every person's hull vertices
         camera, cam_info = sample_camera(outline, cfg.camera, rng)
         back = self.background(rng, camera)
+        frame, labels = self.render_frame(index, people, camera, cam_info, back, rng)
+        return self.encode(index, camera, cam_info, back, people, frame, labels)
+
+    def pose_person(self, rng: np.random.Generator) -> dict[str, Any]:
+        """A subject drawn and posed by the pose source (at the origin, before placement)."""
+        si = int(rng.integers(len(self.subjects)))
+        s = self.subjects[si]
+        age = s.meta.get("phenotype", {}).get("age_years")
+        x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0)
+        p = self.pose(si, x, orient, np.zeros(3, np.float32))
+        p["motion"] = motion
+        return p
+
+    def pose(self, si: int, x: np.ndarray, orient: np.ndarray, transl: np.ndarray) -> dict[str, Any]:
+        """Subject ``si`` posed (:func:`synth.subjects.pose_subject`), subdivided as its render mesh
+        is, with its hair posed; ``rig`` and ``subject`` attached."""
+        s = self.subjects[si]
+        p = pose_subject(s, self.model, {"pose": x, "global_orient": orient, "transl": transl}, self.cfg.pipeline)
+        rig = self.rig(si)
+        if rig["parents"] is not None:
+            par = rig["parents"]
+            p["vertices"] = 0.5 * (p["vertices"][par[:, 0]] + p["vertices"][par[:, 1]])
+        if "hair" in rig:
+            from synth.hair import pose_hair
+
+            p["hair"] = pose_hair(rig["hair"][1], p["transforms"])
+        p.update(subject=s.id, si=si, rig=rig)
+        return p
+
+    @staticmethod
+    def shell(p: dict[str, Any]) -> np.ndarray:
+        """The person's posed vertices with the hair's: footprints, framing and boxes use their hull
+        vertices, which hold the extremes (:func:`synth.camera.outline_index`)."""
+        return p["vertices"] if "hair" not in p else np.concatenate([p["vertices"], p["hair"]])
+
+    def render_frame(self, index: int, people: list[dict[str, Any]], camera: Any, cam_info: dict, back: bg.Background,
+                     rng: np.random.Generator) -> tuple[Any, dict[str, Any]]:
+        """Render the placed ``people`` (each with its ``outline``) and make their labels."""
+        cfg = self.cfg
+        outline = np.concatenate([p["outline"] for p in people])
         rigs = [p["rig"] for p in people]
         # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
         # a backplate) and the backdrop is composited after the render: darkened by the people's
@@ -417,7 +447,7 @@ class SampleMaker:
         )  # fmt: skip
         if labels["unassigned"]:
             raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")
-        return self.encode(index, camera, cam_info, back, people, frame, labels)
+        return frame, labels
 
     def _hair_labels(self, p: dict[str, Any]) -> dict[str, Any]:
         if "hair" not in p:
@@ -462,7 +492,10 @@ class SampleMaker:
                 float(lens.circle_of_confusion(np.array([np.inf]), cam_info["focus_m"], f_px, aperture)[0]), 3)}
         frame.rgb = (frame.rgb + (1.0 - frame.alpha[..., None]) * backdrop).astype(np.float32)
 
-    def encode(self, index, camera, cam_info, back, people, frame, labels) -> dict[str, bytes]:
+    def encode(self, index, camera, cam_info, back, people, frame, labels, extra: dict[str, Any] | None = None,
+               extra_people: list[dict[str, Any]] | None = None) -> dict[str, bytes]:
+        """The sample's fields; ``extra`` adds top-level label keys and ``extra_people`` keys per
+        person (a sequence's, :mod:`synth.sequence`)."""
         from blsm.joint_limits import unconstrained_from_angles
 
         m = self.model
@@ -491,6 +524,7 @@ class SampleMaker:
                     "box": lp["box"],
                     "box_full": _l(lp["box_full"]),
                     "pixels": lp["pixels"],
+                    **(extra_people[len(plist)] if extra_people else {}),
                 }
             )  # fmt: skip
         doc = {
@@ -506,6 +540,9 @@ class SampleMaker:
             "part_names": list(m.part_names),
             "people": plist,
         }
+        extra = dict(extra or {})
+        doc["camera"].update(extra.pop("camera", {}))
+        doc.update(extra)
         rgb = np.round(linear_to_srgb(frame.rgb) * 255.0).astype(np.uint8)
         return {
             "rgb.png": fmt.encode_png(rgb),
@@ -557,6 +594,20 @@ def _posed_joint(keypoints: np.ndarray, model: Any, j: int) -> np.ndarray:
 _MAKER: SampleMaker | None = None
 _ARGS: tuple = ()
 _MADE = 0
+_SEQUENCE: tuple[int, Any] = (-1, None)  # (sequence, its frames' fields or the exception that stopped it)
+
+
+def frames_per_sample(cfg: GeneratorConfig) -> int:
+    """Samples (frames) per unit of work: a sequence's frames, or 1 for single images."""
+    return cfg.sequence.frames if cfg.sequence.enabled else 1
+
+
+def run_writer(cfg: GeneratorConfig, out: Path, part: tuple[int, int] = (1, 1)) -> ShardWriter:
+    """The shard writer of a run: ``num`` images, or ``num`` sequences of ``sequence.frames`` frames
+    with ``sequence.per_shard`` whole sequences a shard (docs/video.md, Storage)."""
+    n = frames_per_sample(cfg)
+    size = cfg.sequence.per_shard * n if cfg.sequence.enabled else cfg.output.shard_size
+    return ShardWriter(out, cfg.num * n, size, cfg.seed, config=_cfg_json(cfg), versions=versions(), part=part)
 
 
 def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int, pool_worker: bool = False) -> None:
@@ -567,7 +618,7 @@ def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int, pool_work
     other worker (measured: 337 ms of CPU for 239 ms of wall time per image, 242 ms with one
     thread).
     """
-    global _MAKER, _ARGS, _MADE
+    global _MAKER, _ARGS, _MADE, _SEQUENCE
     import drjit as dr
 
     from synth.config import from_dict
@@ -578,24 +629,46 @@ def _init_worker(cfg_dict: dict, out: str, variant: str, threads: int, pool_work
         threadpool_limits(limits=1)
     torch.set_num_threads(1)
     dr.set_thread_count(threads)
-    _ARGS, _MADE = (cfg_dict, out, variant, threads), 0
+    _ARGS, _MADE, _SEQUENCE = (cfg_dict, out, variant, threads), 0, (-1, None)
     _MAKER = SampleMaker(from_dict(GeneratorConfig, cfg_dict), Path(out), variant, threads)
 
 
 def _make_one(index: int) -> tuple[int, dict[str, bytes] | None, str, str]:
-    """Sample ``index`` as ``(index, fields, "", "")``, or ``(index, None, error type, message)``."""
+    """Sample ``index`` as ``(index, fields, "", "")``, or ``(index, None, error type, message)``.
+    In a sequence run the worker makes a sequence's frames together when asked for its first and
+    serves the others from them (the Ray engine asks for a shard's samples in order)."""
+    global _SEQUENCE
     assert _MAKER is not None
     try:
-        return index, _MAKER.make(index, sample_rng(_MAKER.cfg.seed, index)), "", ""
+        if not _MAKER.cfg.sequence.enabled:
+            return index, _MAKER.make(index, sample_rng(_MAKER.cfg.seed, index)), "", ""
+        seq, f = divmod(index, _MAKER.cfg.sequence.frames)
+        if _SEQUENCE[0] != seq:
+            _SEQUENCE = (seq, None)
+            try:
+                _SEQUENCE = (seq, _MAKER.sequences().make(seq, sequence_rng(_MAKER.cfg.seed, seq)))
+            except Exception as exc:  # every frame of the sequence reports it
+                _SEQUENCE = (seq, exc)
+        if isinstance(_SEQUENCE[1], Exception):
+            raise _SEQUENCE[1]
+        return index, _SEQUENCE[1][f], "", ""
     except Exception as exc:  # reported by the main process: stop, or skip with --skip-bad
         return index, None, type(exc).__name__, format_error(exc)
 
 
+def _make_sequence(seq: int) -> list[tuple[int, dict[str, bytes] | None, str, str]]:
+    """Every frame of sequence ``seq`` (:func:`_make_one`), for the process pool: one task a sequence."""
+    assert _MAKER is not None
+    n = _MAKER.cfg.sequence.frames
+    return [_make_one(i) for i in range(seq * n, (seq + 1) * n)]
+
+
 def _make_in_process(index: int) -> tuple[int, dict[str, bytes] | None, str, str]:
-    """:func:`_make_one` in this process, rebuilding the worker state every ``recycle_after`` images."""
+    """:func:`_make_one` in this process, rebuilding the worker state every ``recycle_after`` images
+    (at a sequence's first frame in a sequence run)."""
     global _MADE
     assert _MAKER is not None
-    if _MADE >= _MAKER.cfg.render.recycle_after:
+    if _MADE >= _MAKER.cfg.render.recycle_after and index % frames_per_sample(_MAKER.cfg) == 0:
         _init_worker(*_ARGS)
     _MADE += 1
     return _make_one(index)
@@ -654,8 +727,7 @@ def generate(
     if engine not in ENGINES:
         raise ValueError(f"unknown engine {engine!r}; choose one of {list(ENGINES)}")
     out = Path(out)
-    writer = ShardWriter(out, cfg.num, cfg.output.shard_size, cfg.seed, config=_cfg_json(cfg), versions=versions(),
-                         part=part)
+    writer = run_writer(cfg, out, part)
     if not writer.shards():
         raise ValueError(f"part {part[0]}/{part[1]} has no shards: the dataset has {writer.num_shards}")
     if not (resume and replace_stale):
@@ -795,9 +867,17 @@ def merge(out: str | Path) -> dict[str, Any]:
 
 
 def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
-    """Open and check every input file of a run before any work: the pose source, every background
-    file (decoded as the workers will) and every scan folder; a ValueError names the first bad one."""
-    PoseSource(cfg)
+    """Open and check every input file of a run before any work: the pose source (for sequences, clips
+    long enough), every background file (decoded as the workers will) and every scan folder; a
+    ValueError names the first bad one."""
+    poses = PoseSource(cfg)
+    if cfg.sequence.enabled:
+        from synth.sequence import long_enough, needed_seconds
+
+        needed = needed_seconds(cfg.sequence)
+        if not long_enough(poses.clips, needed):
+            raise ValueError(f"{cfg.poses.library}: no clip holds {needed:.2f} s without a cut "
+                             "(sequence.frames / sequence.fps); use fewer frames or longer clips")
     b = cfg.background
     if b.kind == "hdri":
         bg.check_files(bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude), b.kind, b.env_width)
@@ -842,7 +922,7 @@ def _run(
     if stop_after is not None:
         todo = todo[:stop_after]
     indices = [i for s in todo for i in writer.indices(s)]
-    workers = max(1, min(workers, len(indices)))
+    workers = max(1, min(workers, -(-len(indices) // frames_per_sample(cfg))))
     plural = "s" * (workers > 1)
     _log(f"{len(indices)} images in {len(todo)} shards -> {out} ({workers} worker{plural}, Mitsuba {variant})")
     meter = _Progress(len(indices), progress)
@@ -853,6 +933,11 @@ def _run(
     elif workers == 1:
         _init_worker(*init)
         results = map(_make_in_process, indices)
+    elif cfg.sequence.enabled:  # a task a sequence, so that one worker makes all its frames
+        n = cfg.sequence.frames
+        pool = mp.get_context("spawn").Pool(workers, _init_worker, (*init, True),
+                                            maxtasksperchild=max(1, cfg.render.recycle_after // n))
+        results = itertools.chain.from_iterable(pool.imap(_make_sequence, sorted({i // n for i in indices})))
     else:
         pool = mp.get_context("spawn").Pool(workers, _init_worker, (*init, True), maxtasksperchild=cfg.render.recycle_after)
         results = pool.imap(_make_one, indices)
@@ -939,6 +1024,8 @@ def _cfg_json(cfg: GeneratorConfig) -> dict:
     """The config as the manifest stores it. ``background.align_horizon`` is left out where it
     changes nothing (no plates.json horizons), so that runs made before it resume."""
     d = json.loads(json.dumps(asdict(cfg)))
+    if not cfg.sequence.enabled:  # single images: the manifests of before
+        d.pop("sequence")
     b = cfg.background
     if b.kind != "images" or not bg.read_horizons(b.folder):
         d["background"].pop("align_horizon")

@@ -90,12 +90,14 @@ class MeshRebuilder:
         params = {k: np.asarray(b[k], np.float32) for k in ("pose", "global_orient", "transl")}
         out = pose_subject(s, self.model, params, pipe)
         v, f, kp = out["vertices"], out["faces"], out["keypoints"]
+        self.bones = np.asarray(out["vertex_bones"])  # the body's, for a sequence's contact regions
         if pipe == "raw":  # the scan as captured, moved to its place in the image
             d = params["transl"] - s.registration["transl"]
             v, kp = v + d, kp + d
         if self.parents is not None:
             par, f = self.parents
             v = 0.5 * (v[par[:, 0]] + v[par[:, 1]])
+            self.bones = self.bones[par[:, 0]]
         if person.get("hair") is not None:  # the hair follows the body's faces (synth.labels)
             from synth.hair import HairSpec, hair_faces, pose_hair, subject_hair
 
@@ -155,11 +157,12 @@ def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Re
         samples = read_shard(path)
         if len(samples) != entry.get("samples"):
             rep.fail(str(path), f"holds {len(samples)} samples, the manifest says {entry.get('samples')}")
+        docs: dict[str, dict[str, Any]] = {}
         for key, fields in sorted(samples.items()):
             where = f"{name}:{key}"
             rep.samples += 1
             try:
-                _check_sample(where, fields, rebuild, bone_to_part, rep)
+                docs[key] = _check_sample(where, fields, rebuild, bone_to_part, rep)
             except ValueError as exc:
                 rep.fail(where, str(exc).splitlines()[0])
             if log is not None and rep.samples % 50 == 0:
@@ -167,6 +170,12 @@ def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Re
             if len(rep.failures) >= max_failures:
                 rep.fail(str(dataset), f"stopped after {max_failures} failures")
                 return rep
+        seq = (man.get("config") or {}).get("sequence") or {}
+        if seq.get("enabled"):
+            from synth.validate_sequence import check_sequences
+
+            for msg in check_sequences(docs, seq, entry.get("first", 0)):
+                rep.fail(str(path), msg)
     return rep
 
 
@@ -226,18 +235,20 @@ def check_correspondences(
     return out
 
 
-def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, bone_to_part: np.ndarray, rep: Report) -> None:
+def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, bone_to_part: np.ndarray,
+                  rep: Report) -> dict[str, Any] | None:
+    """Check one sample (module docstring); return its labels (None when they cannot be read)."""
     missing = [f for f in fmt.FIELDS if f not in fields]
     if missing:
         rep.fail(where, f"missing fields {missing}")
-        return
+        return None
     s = fmt.decode_sample(fields, where)
     doc = s["json"]
     w, h = doc["image"]["width"], doc["image"]["height"]
     for k, shape in (("rgb", (h, w, 3)), ("mask", (h, w)), ("parts", (h, w)), ("bones", (h, w)), ("depth", (h, w)), ("corr", (h, w, 3))):
         if s[k].shape != shape:
             rep.fail(where, f"{k} has shape {s[k].shape}, expected {shape}")
-            return
+            return doc
     cam = Camera(K=np.array(doc["camera"]["K"]), R=np.array(doc["camera"]["R"]), t=np.array(doc["camera"]["t"]), width=w, height=h)
     mask, depth, corr = s["mask"], s["depth"], s["corr"]
     fg = mask > 0
@@ -275,6 +286,11 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
         verts, faces, kp_re = rebuild.mesh(p)
         if np.abs(kp_re - kp3).max() > 1e-4:
             rep.fail(pw, f"keypoints_3d differ from the rebuilt body by {np.abs(kp_re - kp3).max() * 1000:.2f} mm")
+        if "contact" in p:
+            from synth.validate_sequence import check_contact
+
+            for msg in check_contact(rebuild.model, rebuild.bones, verts[: len(rebuild.bones)], kp_re, p, doc):
+                rep.fail(pw, msg)
         vc = verts @ cam.R.T + cam.t
         if (vc[:, 2] <= 1e-3).any():
             continue  # a mesh crossing the camera plane cannot be projected as triangles
@@ -284,3 +300,4 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
     diff = int((union ^ fg).sum())
     if diff > max(2, EDGE_PIXELS * fg.sum()):
         rep.fail(where, f"the mask differs from the projected meshes in {diff} of {int(fg.sum())} pixels")
+    return doc

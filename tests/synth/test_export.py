@@ -1,4 +1,5 @@
-"""Export to SPIN-style .npz and COCO keypoint JSON: fields, mapping, RLE, atomic refusal to overwrite."""
+"""Export to SPIN-style .npz, COCO keypoint JSON and per-sequence .npz: fields, mapping, RLE, atomic
+refusal to overwrite."""
 
 from __future__ import annotations
 
@@ -7,12 +8,21 @@ import json
 import numpy as np
 import pytest
 import torch
-from fakes import make_dataset
+from fakes import make_dataset, write_fake_sequences
 
 from synth import format as fmt
 from synth.cli import main
 from synth.data import DatasetIndex
-from synth.export import COCO_FILE, COCO_KEYPOINTS, SPIN_FILE, SPIN_KEYPOINTS, export, rle_encode
+from synth.export import (
+    COCO_FILE,
+    COCO_KEYPOINTS,
+    SEQUENCES_FILE,
+    SPIN_FILE,
+    SPIN_KEYPOINTS,
+    export,
+    rle_encode,
+)
+from synth.sequence import CONTACT_REGIONS
 
 torch.set_num_threads(1)
 
@@ -157,3 +167,119 @@ def test_bad_labels_in_a_late_sample_leave_no_output(tmp_path, model):
             export(root, f, tmp_path / "o")
         assert "\n" not in str(info.value)
         assert not (tmp_path / "o").exists() or not any((tmp_path / "o").rglob("*")), f
+
+
+T = 5
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory, model):
+    return write_fake_sequences(tmp_path_factory.mktemp("fake") / "video", sequences=3, frames=T, per_shard=2,
+                                model=model)  # fmt: skip
+
+
+def test_sequences_export_has_the_fields_of_every_frame_and_person(video, tmp_path, capsys):
+    out = tmp_path / "seq"
+    assert main(["export", str(video), "--format", "sequences", "--out", str(out)]) == 0
+    path = out / SEQUENCES_FILE
+    assert capsys.readouterr().out.strip() == str(path)
+    doc = json.loads(path.read_text())
+    assert doc["sequences"] == ["000000.npz", "000001.npz", "000002.npz"] and doc["frames"] == T
+    assert doc["fps"] == 30.0 and doc["contact_names"] == list(CONTACT_REGIONS)
+    index = DatasetIndex(video)
+    metas = [index.json(i) for i in range(len(index))]
+    k, p = len(metas[0]["keypoint_names"]), len(metas[0]["people"])
+    for s, name in enumerate(doc["sequences"]):
+        data = np.load(out / name, allow_pickle=False)
+        shapes = {
+            "imgname": (T,), "frame": (T,), "time": (T,), "fps": (), "image_size": (2,), "cam_int": (T, 3, 3),
+            "cam_ext": (T, 4, 4), "cam_to_world": (T, 4, 4), "pose": (p, T, 47), "global_orient": (p, T, 3),
+            "transl": (p, T, 3), "bone": (p, 10), "shape": (p, 64), "keypoints_3d": (p, T, k, 3),
+            "keypoints_3d_cam": (p, T, k, 3), "keypoints_2d": (p, T, k, 2), "visible": (p, T, k),
+            "in_frame": (p, T, k), "velocity_3d": (p, T, k, 3), "contact": (p, T, 9),
+            "contact_velocity": (p, T, 9), "contact_names": (9,), "in_view": (p, T), "box_full": (p, T, 4),
+            "subject": (p,), "keypoint_names": (k,),
+        }  # fmt: skip
+        assert {n: data[n].shape for n in data.files} == shapes
+        assert (
+            data["visible"].dtype == bool and data["contact"].dtype == bool and data["in_view"].dtype == bool
+        )
+        assert list(data["contact_names"]) == list(CONTACT_REGIONS) and float(data["fps"]) == 30.0
+        assert list(data["keypoint_names"]) == metas[0]["keypoint_names"]
+        for f in range(T):
+            meta = metas[s * T + f]
+            assert (
+                data["imgname"][f] == f"images/{s * T + f:09d}.png" and (out / data["imgname"][f]).is_file()
+            )
+            assert data["frame"][f] == f and data["time"][f] == pytest.approx(meta["time"])
+            r, t = np.asarray(meta["camera"]["R"]), np.asarray(meta["camera"]["t"])
+            np.testing.assert_allclose(data["cam_int"][f], meta["camera"]["K"])
+            np.testing.assert_allclose(data["cam_ext"][f][:3], np.c_[r, t])
+            np.testing.assert_allclose(data["cam_ext"][f] @ data["cam_to_world"][f], np.eye(4), atol=1e-9)
+            for j, q in enumerate(meta["people"]):
+                assert data["subject"][j] == q["subject"] and data["in_view"][j, f] == q["in_view"]
+                for name in ("keypoints_3d", "keypoints_3d_cam", "keypoints_2d", "velocity_3d", "box_full"):
+                    np.testing.assert_allclose(data[name][j, f], q[name])
+                for name in ("pose", "global_orient", "transl"):
+                    np.testing.assert_allclose(data[name][j, f], q["blsm"][name])
+                np.testing.assert_allclose(data["bone"][j], q["blsm"]["bone"])
+                np.testing.assert_array_equal(data["visible"][j, f], q["visible"])
+                np.testing.assert_array_equal(
+                    data["contact"][j, f], [q["contact"][c] for c in CONTACT_REGIONS]
+                )
+                np.testing.assert_array_equal(
+                    data["contact_velocity"][j, f], [q["contact_velocity"][c] for c in CONTACT_REGIONS]
+                )
+        # the camera's projection of the world keypoints is the 2D keypoints
+        x = data["keypoints_3d"]
+        cam = (
+            np.einsum("tij,ptkj->ptki", data["cam_ext"][:, :3, :3], x) + data["cam_ext"][None, :, None, :3, 3]
+        )
+        np.testing.assert_allclose(cam, data["keypoints_3d_cam"], atol=1e-9)
+        uvw = np.einsum("tij,ptkj->ptki", data["cam_int"], cam)
+        ahead = cam[..., 2] > 0.1
+        np.testing.assert_allclose(
+            (uvw[..., :2] / uvw[..., 2:])[ahead], data["keypoints_2d"][ahead], atol=1e-6
+        )
+
+
+def test_sequences_export_refuses_to_overwrite_and_bad_input_leaves_no_output(video, root, tmp_path, model):
+    out = tmp_path / "o"
+    export(video, "sequences", out)
+    with pytest.raises(ValueError, match="sequences.json: an export already exists") as info:
+        export(video, "sequences", out)
+    assert "\n" not in str(info.value)
+    (out / "000009.npz").write_bytes(b"")  # a sequence of an earlier, longer export ...
+    doc = json.loads((out / SEQUENCES_FILE).read_text())
+    (out / SEQUENCES_FILE).write_text(json.dumps({**doc, "sequences": [*doc["sequences"], "000009.npz"]}))
+    export(video, "sequences", out, overwrite=True)
+    assert not (out / "000009.npz").exists()  # ... goes with it
+    assert sorted(p.name for p in out.glob("*.npz")) == doc["sequences"]
+    assert not list(out.glob(".*.tmp"))
+    # single images are not a video dataset
+    with pytest.raises(ValueError, match=r"\.json: no 'sequence' label: not a video dataset") as info:
+        export(root, "sequences", tmp_path / "single")
+    assert "\n" not in str(info.value) and not (tmp_path / "single").exists()
+
+
+def test_sequences_export_of_bad_labels_in_the_last_frame_leaves_no_output(tmp_path, model):
+    from synth.shards import read_shard, write_shard
+
+    root = write_fake_sequences(tmp_path / "v", sequences=2, frames=3, model=model)
+    shard = root / "shard-000001.tar"
+    samples = read_shard(shard)
+    doc = json.loads(samples["000000005"]["json"])
+    del doc["people"][1]["contact"]["toe_r"]
+    samples["000000005"]["json"] = fmt.encode_json(doc)
+    write_shard(shard, sorted((int(k), v) for k, v in samples.items()))
+    man = json.loads((root / "manifest.json").read_text())
+    from blsm.io import sha256_file
+
+    man["shards"]["shard-000001.tar"]["sha256"] = sha256_file(shard)
+    (root / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(
+        ValueError, match=r"shard-000001\.tar:000000005\.json: bad labels \('toe_r'\)"
+    ) as info:
+        export(root, "sequences", tmp_path / "o")
+    assert "\n" not in str(info.value)
+    assert not (tmp_path / "o").exists() or not any((tmp_path / "o").rglob("*"))

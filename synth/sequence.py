@@ -1,0 +1,403 @@
+"""Sequences: people playing motion clips in one world frame, filmed by a camera path (docs/video.md).
+
+A sequence of ``T`` frames at ``F`` fps (``sequence.frames``, ``sequence.fps``) is made by one worker
+from its own random generator (:func:`sequence_rng`), in this order:
+
+1. **People.** Each draws a subject, a motion-library clip (children: ``poses.child_clips`` when set)
+   and a window of it without a cut (:func:`clip_segments`), a heading (yaw about +Y, uniform) and
+   plays the window from its start: the pose is interpolated between the clip's frames (a
+   Catmull-Rom spline through the joint angles, kept inside their limits, and the root translation,
+   so velocities are continuous; spherically in the root orientation).
+   The root's path is the clip's, turned by the heading, scaled by the subject's leg length over the
+   mean body's (the clip is retargeted to the mean body) and started at the origin.
+2. **The body is posed** on a half-frame grid, ``t_k = k h`` with ``h = 1 / (2F)``, ``k = -1 .. 2T - 1``:
+   even ``k`` are the frames, odd ``k`` give central differences (velocities and contact) at every
+   frame, the first and last included. The person is lifted by one constant for the whole clip so
+   that its lowest vertex over the clip touches the ground ``y = 0`` (jumps stay jumps).
+3. **Placement.** People are moved apart horizontally so that at every frame their footprint discs
+   (the centre and radius of the body's hull in x-z, hair included) are ``people.gap`` apart: their
+   trajectories never bring two bodies into one place at one time (they may cross a place at
+   different times).
+4. **Camera and light.** A camera path (:mod:`synth.camera_paths`), one background, exposure and
+   environment rotation for the whole clip.
+5. **Frames.** Each frame is rendered and labelled as a single image is (:class:`synth.generate.SampleMaker`),
+   plus the sequence's labels (docs/video.md): the camera-to-world transform and path, each
+   person's ``track``, ``velocity_3d``, ``contact``, ``contact_velocity`` and ``in_view``. With
+   ``sequence.motion_blur`` the image is the mean of sub-frame renders over the shutter (people and
+   camera where they are at each sub-frame's time); the labels are the centre sub-frame's.
+
+Contact (:func:`contact`): a region (:data:`CONTACT_REGIONS`) touches the ground when one of its
+vertices is within ``sequence.contact.distance`` of ``y = 0`` and slower than ``contact.speed``.
+Exact, because the ground is ours. Beside it, ``contact_velocity`` is the rule the field derives
+contact with from motion capture: the region's keypoint (:data:`REGION_KEYPOINT`) slower than
+``contact.velocity_rule``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from synth.camera import outline_index
+from synth.camera_paths import Track, choose_kind, sample_path
+
+CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
+REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
+                   "hand_l": "wrist_l", "hand_r": "wrist_r", "knee_l": "knee_l", "knee_r": "knee_r",
+                   "pelvis": "pelvis"}  # fmt: skip
+FEET = ("heel_l", "heel_r", "toe_l", "toe_r")
+MAX_ROOT_SPEED = 8.0
+"""m/s: a clip whose root moves faster between two frames has a cut there (CMU files often start
+with a calibration frame at the origin); windows never cross one."""
+KNEE_RADIUS = 0.1
+"""Metres: the knee region is the shank's vertices this close to the knee joint."""
+
+
+def move_person(p: dict[str, Any], d: np.ndarray) -> None:
+    """Translate a posed person (vertices, keypoints, joints, hair, root) by ``d`` (3,) metres."""
+    for k in ("vertices", "keypoints", "joints", "hair"):
+        if k in p:
+            p[k] = (p[k] + d).astype(np.float32)
+    p["transl"] = (p["transl"] + d).astype(np.float32)
+
+
+def sequence_rng(seed: int, sequence: int) -> np.random.Generator:
+    """The random generator of sequence ``sequence``: a function of ``(seed, sequence)`` only."""
+    return np.random.Generator(np.random.PCG64(np.random.SeedSequence([int(seed), int(sequence), 1])))
+
+
+def needed_seconds(cfg: Any) -> float:
+    """Seconds of clip a sequence plays (``cfg``: :class:`synth.config.SequenceConfig`): its frames'
+    span plus, either side, half a frame (the central differences) or half the shutter (motion blur)."""
+    blur = cfg.motion_blur.shutter / (2 * cfg.fps) if cfg.motion_blur.enabled else 0.0
+    return (cfg.frames - 1) / cfg.fps + 2 * max(0.5 / cfg.fps, blur)
+
+
+def clip_segments(transl: np.ndarray, fps: float) -> list[tuple[int, int]]:
+    """``[(first, last)]`` frame ranges of a clip without a cut (root faster than :data:`MAX_ROOT_SPEED`)."""
+    speed = np.linalg.norm(np.diff(transl, axis=0), axis=1) * fps
+    cuts = np.nonzero(speed > MAX_ROOT_SPEED)[0]
+    edges = [0, *(cuts + 1).tolist(), len(transl)]
+    return [(a, b - 1) for a, b in zip(edges[:-1], edges[1:]) if b - 1 > a]
+
+
+@dataclass(frozen=True)
+class Window:
+    """A window of a clip, played from ``start`` seconds into the clip."""
+
+    clip: Any
+    start: float
+
+    def at(self, tau: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``(x, global_orient, transl, clip frame)`` at ``tau`` seconds from the window's start."""
+        from scipy.spatial.transform import Rotation
+
+        c = self.clip
+        q = (self.start + tau) * c.fps
+        i = min(int(math.floor(q)), c.num_frames - 2)
+        a = float(q - i)
+        # The spline runs through the joint angles (Eq. 6: angle = mid + half tanh(x), so tanh(x)),
+        # kept inside the limits: in x itself, a saturated atom's large jumps would overshoot.
+        u = np.clip(
+            _catmull_rom(np.tanh(c.pose[max(i - 1, 0) : i + 3].astype(np.float64)), min(i, 1), a),
+            -1 + 1e-6,
+            1 - 1e-6,
+        )
+        x, tr = np.arctanh(u), _catmull_rom(c.transl, i, a)
+        r0, r1 = Rotation.from_rotvec(c.global_orient[i]), Rotation.from_rotvec(c.global_orient[i + 1])
+        orient = (r0 * Rotation.from_rotvec(a * (r0.inv() * r1).as_rotvec())).as_rotvec()
+        return x.astype(np.float32), orient, tr.astype(np.float64), q
+
+
+def _catmull_rom(rows: np.ndarray, i: int, a: float) -> np.ndarray:
+    """Rows ``i`` to ``i + 1`` of ``rows`` (T, D) at fraction ``a`` by the Catmull-Rom spline (the
+    end rows repeated): through every row, with continuous velocity."""
+    n = len(rows)
+    p0, p1, p2, p3 = (rows[min(max(j, 0), n - 1)].astype(np.float64) for j in (i - 1, i, i + 1, i + 2))
+    return 0.5 * (
+        2 * p1 + a * (p2 - p0) + a * a * (2 * p0 - 5 * p1 + 4 * p2 - p3) + a**3 * (3 * p1 - p0 - 3 * p2 + p3)
+    )
+
+
+def draw_window(clips: list[Any], eligible: list[int], needed: float, rng: np.random.Generator) -> Window:
+    """A window of ``needed`` seconds from one of the ``eligible`` clips (uniformly), inside a segment
+    without a cut (segments weighted by the starts they allow), its start uniform."""
+    ci = eligible[int(rng.integers(len(eligible)))]
+    c = clips[ci]
+    segs = [
+        (a / c.fps, b / c.fps - needed)
+        for a, b in clip_segments(c.transl, c.fps)
+        if (b - a) / c.fps >= needed
+    ]
+    w = np.array([hi - lo + 1e-9 for lo, hi in segs])
+    lo, hi = segs[int(rng.choice(len(segs), p=w / w.sum()))]
+    return Window(c, float(rng.uniform(lo, hi)))
+
+
+def long_enough(clips: list[Any], needed: float) -> list[int]:
+    """The clips with a segment of at least ``needed`` seconds."""
+    return [
+        i
+        for i, c in enumerate(clips)
+        if any((b - a) / c.fps >= needed for a, b in clip_segments(c.transl, c.fps))
+    ]
+
+
+def contact_regions(
+    model: Any, vertex_bones: np.ndarray, vertices: np.ndarray, keypoints: np.ndarray
+) -> dict[str, np.ndarray]:
+    """Vertex indices of each contact region of a posed person (its own mesh): ``heel_*`` and
+    ``toe_*`` split the foot bone's vertices at the middle of the heel-to-toe-tip axis, ``hand_*`` the
+    hand bone's, ``knee_*`` the shank's within :data:`KNEE_RADIUS` of the knee, ``pelvis`` the
+    pelvis bone's (sitting)."""
+    bones, kp = list(model.bone_names), list(model.keypoint_names)
+    out: dict[str, np.ndarray] = {}
+    for s in ("l", "r"):
+        foot = np.nonzero(vertex_bones == bones.index(f"ankle_{s}"))[0]
+        heel, toe = keypoints[kp.index(f"heel_{s}")], keypoints[kp.index(f"toe_tip_{s}")]
+        u = (vertices[foot] - heel) @ (toe - heel) / max(float((toe - heel) @ (toe - heel)), 1e-12)
+        out[f"heel_{s}"], out[f"toe_{s}"] = foot[u < 0.5], foot[u >= 0.5]
+        out[f"hand_{s}"] = np.nonzero(vertex_bones == bones.index(f"wrist_{s}"))[0]
+        shank = np.nonzero(vertex_bones == bones.index(f"knee_{s}"))[0]
+        knee = keypoints[kp.index(f"knee_{s}")]
+        out[f"knee_{s}"] = shank[np.linalg.norm(vertices[shank] - knee, axis=1) <= KNEE_RADIUS]
+    out["pelvis"] = np.nonzero(vertex_bones == bones.index("pelvis"))[0]
+    return {k: out[k] for k in CONTACT_REGIONS}
+
+
+def contact(heights: np.ndarray, speeds: np.ndarray, distance: float, speed: float) -> bool:
+    """A region touches the ground: one of its vertices (``heights`` above ``y = 0`` and ``speeds``,
+    m/s) is within ``distance`` of it and slower than ``speed``."""
+    return bool(((heights <= distance) & (speeds <= speed)).any())
+
+
+def place_tracks(
+    footprints: list[np.ndarray], gap: float, rng: np.random.Generator, tries: int = 400
+) -> list[np.ndarray]:
+    """Horizontal offsets (x, z) so that, at every frame, the people's footprint discs are ``gap``
+    apart. ``footprints``: per person, (T, 3) rows ``(x, z, radius)``."""
+    offsets: list[np.ndarray] = []
+    for i, fp in enumerate(footprints):
+        if i == 0:
+            offsets.append(np.zeros(2))
+            continue
+        reach = 1.0 + max(float(f[:, 2].max()) for f in footprints[: i + 1])
+        for n in range(tries):
+            ang = rng.uniform(0, 2 * math.pi)
+            rad = reach * (1.0 + 4.0 * n / tries) * math.sqrt(rng.uniform(0.25, 1.0))
+            o = rad * np.array([math.cos(ang), math.sin(ang)])
+            ok = all(
+                (np.linalg.norm(fp[:, :2] + o - (footprints[j][:, :2] + offsets[j]), axis=1) >= fp[:, 2] + footprints[j][:, 2] + gap).all()
+                for j in range(i)
+            )  # fmt: skip
+            if ok:
+                offsets.append(o)
+                break
+        else:  # pragma: no cover - the reach grows to 5x: always found
+            raise RuntimeError("could not place the people's trajectories apart")
+    return offsets
+
+
+class SequenceMaker:
+    """Makes the frames of sequences with a worker's :class:`synth.generate.SampleMaker`."""
+
+    def __init__(self, maker: Any) -> None:
+        import torch
+
+        self.m = maker
+        self.cfg = maker.cfg.sequence
+        self.T, self.F = self.cfg.frames, float(self.cfg.fps)
+        self.h = 0.5 / self.F
+        self.needed = needed_seconds(self.cfg)
+        self.margin = 0.5 * (self.needed - (self.T - 1) / self.F)
+        poses = maker.poses
+        self.eligible = long_enough(poses.clips, self.needed)
+        self.child_eligible = [i for i in self.eligible if i in poses.child_clips]
+        if not self.eligible:
+            raise ValueError(
+                f"{maker.cfg.poses.library}: no clip holds {self.needed:.2f} s without a cut "
+                f"(sequence.frames / sequence.fps); use fewer frames or longer clips"
+            )
+        model = maker.model
+        with torch.no_grad():
+            rest = model().rest_joints[0].numpy()
+        self.bones, self.kp = list(model.bone_names), list(model.keypoint_names)
+        self.mean_leg = self._leg(rest)
+        self.region_kp = [self.kp.index(REGION_KEYPOINT[r]) for r in CONTACT_REGIONS]
+
+    def _leg(self, rest_joints: np.ndarray) -> float:
+        b = self.bones
+        return float(
+            np.mean(
+                [rest_joints[b.index(f"hip_{s}"), 1] - rest_joints[b.index(f"ankle_{s}"), 1] for s in "lr"]
+            )
+        )
+
+    # -- people
+    def _person(self, rng: np.random.Generator) -> dict[str, Any]:
+        """One person's clip, posed on the half-frame grid (module docstring, steps 1-2)."""
+        from scipy.spatial.transform import Rotation
+
+        m = self.m
+        si = int(rng.integers(len(m.subjects)))
+        age = m.subjects[si].meta.get("phenotype", {}).get("age_years")
+        child = age is not None and age < 18.0 and self.child_eligible
+        win = draw_window(m.poses.clips, self.child_eligible if child else self.eligible, self.needed, rng)
+        yaw = float(rng.uniform(0, 2 * math.pi))
+        turn = Rotation.from_rotvec([0.0, yaw, 0.0])
+        start = win.at(0.0)[2]
+        scale = None
+
+        def posed(tau: float) -> dict[str, Any]:
+            nonlocal scale
+            x, orient, tr, q = win.at(tau)
+            rel = tr - np.array([start[0], 0.0, start[2]])
+            if scale is None:  # the subject's legs over the mean body's
+                probe = m.pose(si, x, np.zeros(3, np.float32), np.zeros(3, np.float32))
+                scale = self._leg(probe["rest_joints"]) / self.mean_leg
+            world_orient = (turn * Rotation.from_rotvec(orient)).as_rotvec().astype(np.float32)
+            p = m.pose(si, x, world_orient, (turn.apply(scale * rel)).astype(np.float32))
+            p["motion"] = {"source": "library", "clip": win.clip.name, "frame": round(float(q), 4),
+                           "time": round(float(q / win.clip.fps), 6)}  # fmt: skip
+            return p
+
+        grid = [posed(self.margin + k * self.h) for k in range(-1, 2 * self.T)]  # k = -1 .. 2T - 1
+        first = grid[1]
+        vb = first["vertex_bones"]
+        if first["rig"]["parents"] is not None:
+            vb = vb[first["rig"]["parents"][:, 0]]
+        regions = contact_regions(m.model, vb, first["vertices"], first["keypoints"])
+        frames = grid[1::2]
+        return {
+            "si": si, "posed": posed, "frames": frames, "regions": regions,
+            "keypoints": np.stack([g["keypoints"] for g in grid]).astype(np.float64),
+            "region_vertices": {r: np.stack([g["vertices"][idx] for g in grid]).astype(np.float64) for r, idx in regions.items()},
+            "lowest": min(float(g["vertices"][:, 1].min()) for g in grid),
+            "window": {"clip": win.clip.name, "start_s": round(win.start + self.margin, 6), "yaw_deg": round(math.degrees(yaw), 4),
+                       "leg_scale": round(float(scale), 6)},
+        }  # fmt: skip
+
+    # -- a sequence
+    def make(self, seq: int, rng: np.random.Generator) -> list[dict[str, bytes]]:
+        """The ``T`` frames of sequence ``seq``: each frame's fields, in order."""
+        m, cfg, T, F = self.m, self.m.cfg, self.T, self.F
+        n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
+        people = [self._person(rng) for _ in range(n)]
+        footprints = []
+        for p in people:
+            rows = []
+            for fr in p["frames"]:
+                v = m.shell(fr)
+                idx = outline_index(v)
+                fr["outline"] = v[idx].astype(np.float32)
+                xz = fr["outline"][:, [0, 2]]
+                c = 0.5 * (xz.min(0) + xz.max(0))
+                rows.append([c[0], c[1], float(np.linalg.norm(xz - c, axis=1).max())])
+            footprints.append(np.array(rows))
+        offsets = place_tracks(footprints, cfg.people.gap, rng)
+        for p, o in zip(people, offsets):
+            d = np.array([o[0], -p["lowest"], o[1]])
+            p["offset"] = d
+            for fr in p["frames"]:
+                move_person(fr, d)
+                fr["outline"] = (fr["outline"] + d).astype(np.float32)
+            p["keypoints"] += d
+            for r in p["region_vertices"]:
+                p["region_vertices"][r] += d
+        step = max(1, T // 24)
+        everyone = np.concatenate(
+            [p["frames"][f]["outline"] for p in people for f in [*range(0, T, step), T - 1]]
+        )
+        follow = Track(
+            np.arange(T) / F,
+            np.array([0.5 * (fr["outline"].min(0) + fr["outline"].max(0)) for fr in people[0]["frames"]]),
+        )
+        kind = choose_kind(self.cfg.cameras.weights(), rng)
+        path = sample_path(
+            kind,
+            cfg.camera,
+            self.cfg.cameras,
+            everyone,
+            people[0]["frames"][0]["outline"],
+            follow,
+            (T - 1) / F,
+            rng,
+        )
+        back = m.background(rng, path.at(0.0))
+        return [self._frame(seq, f, people, path, back, rng) for f in range(T)]
+
+    def _labels(self, p: dict[str, Any], f: int) -> dict[str, Any]:
+        """Velocities and contact of person ``p`` at frame ``f`` (central differences on the grid)."""
+        k = 2 * f + 1  # the frame's row on the grid (row 0 is k = -1)
+        kp = p["keypoints"]
+        vel = (kp[k + 1] - kp[k - 1]) / (2 * self.h)
+        c = self.cfg.contact
+        touch, rule = {}, {}
+        for r, kpi in zip(CONTACT_REGIONS, self.region_kp):
+            rv = p["region_vertices"][r]
+            speeds = np.linalg.norm(rv[k + 1] - rv[k - 1], axis=1) / (2 * self.h)
+            touch[r] = contact(rv[k][:, 1], speeds, c.distance, c.speed) if len(rv[k]) else False
+            rule[r] = bool(np.linalg.norm(vel[kpi]) <= c.velocity_rule)
+        return {"velocity_3d": vel, "contact": touch, "contact_velocity": rule}
+
+    def _frame(
+        self, seq: int, f: int, people: list[dict[str, Any]], path: Any, back: Any, rng: np.random.Generator
+    ) -> dict[str, bytes]:
+        from synth.format import json_round as _l
+
+        m, T, F = self.m, self.T, self.F
+        index = seq * T + f
+        t = f / F
+        camera = path.at(t)
+        frame_people = [p["frames"][f] for p in people]
+        cam_info = {**path.base, "view": "normal", "truncated": False, "truncation": 0.0, "truncation_side": "",
+                    "focal_mm": round(float(camera.K[0, 0]) * 36.0 / camera.width, 6), "path": path.kind}  # fmt: skip
+        blur = self.cfg.motion_blur
+        if blur.enabled and blur.subframes > 1:
+            rgb = None
+            offsets = [(j / (blur.subframes - 1) - 0.5) * blur.shutter / F for j in range(blur.subframes)]
+            offsets = [o for o in offsets if o != 0.0]
+            for o in offsets:  # the other sub-frames first; the centre's render gives the labels
+                sub_people = [self._posed_at(p, t + o) for p in people]
+                fr_o, _ = m.render_frame(index, sub_people, path.at(t + o), cam_info, back, rng)
+                rgb = fr_o.rgb if rgb is None else rgb + fr_o.rgb
+            frame, labels = m.render_frame(index, frame_people, camera, cam_info, back, rng)
+            frame.rgb = ((rgb + frame.rgb) / blur.subframes).astype(np.float32)
+        else:
+            frame, labels = m.render_frame(index, frame_people, camera, cam_info, back, rng)
+        c = self.cfg.contact
+        to_world = np.eye(4)
+        to_world[:3, :3], to_world[:3, 3] = camera.R.T, -camera.R.T @ camera.t
+        extra = {"sequence": seq, "frame": f, "frames": T, "fps": F, "time": round(t, 9),
+                 "camera": {"to_world": _l(to_world), "path": _json(path.info)},
+                 "contact_rule": {"distance": c.distance, "speed": c.speed, "velocity_rule": c.velocity_rule},
+                 **({"motion_blur": {"subframes": blur.subframes, "shutter": blur.shutter}} if blur.enabled else {})}  # fmt: skip
+        extra_people = []
+        for i, (p, lp) in enumerate(zip(people, labels["people"])):
+            sl = self._labels(p, f)
+            extra_people.append({"track": i, "velocity_3d": _l(sl["velocity_3d"]), "contact": sl["contact"],
+                                 "contact_velocity": sl["contact_velocity"], "in_view": bool(lp["pixels"] > 0),
+                                 "clip_window": p["window"]})  # fmt: skip
+        return m.encode(index, camera, cam_info, back, frame_people, frame, labels, extra, extra_people)
+
+    def _posed_at(self, p: dict[str, Any], t: float) -> dict[str, Any]:
+        """Person ``p`` posed at time ``t`` of the sequence (a motion-blur sub-frame), placed."""
+        q = p["posed"](self.margin + t)
+        move_person(q, p["offset"])
+        v = self.m.shell(q)
+        q["outline"] = v[outline_index(v)].astype(np.float32)
+        return q
+
+
+def _json(obj: Any) -> Any:
+    """Floats rounded to 1e-6 in nested lists, tuples and dicts (stable JSON)."""
+    if isinstance(obj, dict):
+        return {k: _json(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json(v) for v in obj]
+    if isinstance(obj, float):
+        return round(obj, 6)
+    return obj
