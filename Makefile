@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -39,6 +39,8 @@ bench: $(STAMP)
 	test -f out/data/val/manifest.json || $(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_mesh.py --out docs/benchmarks.md
+	test -f out/motions/summary.csv || $(MAKE) motions
+	$(BIN)/python benchmarks/bench_video.py --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_scale.py --out docs/benchmarks.md
 	$(MAKE) transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
@@ -68,6 +70,18 @@ motions: $(STAMP)
 	$(BIN)/blsm mocap preview out/motions/007_01.npz --out out/motions/preview_walk_007_01.png
 	$(BIN)/blsm mocap preview out/motions/005_02.npz --out out/motions/preview_dance_005_02.png
 	$(BIN)/blsm mocap preview out/motions/002_04.npz --out out/motions/preview_jump_002_04.png
+
+# Video (docs/video.md): every camera path made, validated and drawn (out/video_check: a contact
+# sheet and an animated PNG per path), contact against the velocity rule on walking clips
+# (docs/video_check.json), then the video test set and the packaged network's temporal metrics
+# (about 40 minutes on 2 cores).
+video: $(STAMP)
+	test -f out/motions/summary.csv || $(MAKE) motions
+	$(MAKE) recovery-data-motions
+	$(BIN)/python benchmarks/video_check.py --out out/video_check --doc docs/video_check.json
+	$(BIN)/synth generate configs/synth/video_test.yaml --out out/video_test --workers 2 --resume
+	$(BIN)/synth validate out/video_test
+	$(BIN)/recovery evaluate default out/video_test --out out/video_eval
 
 # Refit the packaged pose prior from out/motions (two clips held out for the tests).
 prior: $(STAMP)

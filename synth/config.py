@@ -383,9 +383,9 @@ class ContactConfig:
     field's velocity rule, reported beside it: the region's keypoint slower than ``velocity_rule``
     m/s."""
 
-    distance: float = 0.03
+    distance: float = 0.015
     speed: float = 0.3
-    velocity_rule: float = 0.2
+    velocity_rule: float = 0.3
 
     def __post_init__(self) -> None:
         if self.distance <= 0 or self.speed <= 0 or self.velocity_rule <= 0:

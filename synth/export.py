@@ -55,7 +55,8 @@ generator's (``docs/video.md``):
 ``contact_velocity``  (P, T, 9) bool  the velocity rule's contact, same regions
 ``contact_names``     (9,) str        :data:`synth.sequence.CONTACT_REGIONS`
 ``in_view``           (P, T) bool     at least one pixel of the person is in the image
-``box_full``          (P, T, 4)       ``[x0, y0, x1, y1]`` of the whole projected mesh, pixels
+``box_full``          (P, T, 4)       ``[x0, y0, x1, y1]`` of the whole projected mesh, pixels (NaN
+                                      where the person is wholly behind the camera)
 ``subject``           (P,) str        subject id (``subjects/<id>.npz`` of the dataset)
 ``keypoint_names``    (K,) str        the keypoints' names
 ====================  ==============  =================================================================
@@ -351,7 +352,7 @@ def _sequence_frame(meta: dict[str, Any], key: str) -> dict[str, Any]:
             [[q["contact_velocity"][r] for r in CONTACT_REGIONS] for q in people], bool
         ),
         "in_view": each("in_view", bool),
-        "box_full": each("box_full"),
+        "box_full": np.array([q["box_full"] if q["box_full"] is not None else [np.nan] * 4 for q in people], np.float64),
         "subject": [str(q["subject"]) for q in people],
         "keypoint_names": [str(n) for n in meta["keypoint_names"]],
     }

@@ -46,7 +46,8 @@ The JSON (``format`` "blsm-synth-sample", ``version`` 1) holds:
   hits this person on a face of the keypoint's own body region (hair counts as the head for the
   joints inside it and hides the surface keypoints under it: eyes, ears, nose), ``in_frame`` (K), ``box``
   ``[x0, y0, x1, y1]`` pixel edges of the person's visible mask, ``box_full`` the box of the
-  person's whole projected mesh (may leave the image), ``pixels`` (visible mask area).
+  person's whole projected mesh (may leave the image; null in a sequence's frame where the person is
+  wholly behind the camera), ``pixels`` (visible mask area).
 
 **Precision.** Every real number of the JSON (``K``, ``R``, ``t``, keypoints, BLSM parameters) is
 rounded to ``JSON_DECIMALS`` = 6 decimals, an error of at most ``JSON_ROUNDING`` = 5e-7 (metres,

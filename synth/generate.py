@@ -522,7 +522,7 @@ class SampleMaker:
                     "visible": [bool(v) for v in lp["visible"]],
                     "in_frame": [bool(v) for v in lp["in_frame"]],
                     "box": lp["box"],
-                    "box_full": _l(lp["box_full"]),
+                    "box_full": None if lp["box_full"] is None else _l(lp["box_full"]),
                     "pixels": lp["pixels"],
                     **(extra_people[len(plist)] if extra_people else {}),
                 }
@@ -875,7 +875,7 @@ def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
         from synth.sequence import long_enough, needed_seconds
 
         needed = needed_seconds(cfg.sequence)
-        if not long_enough(poses.clips, needed):
+        if not long_enough(poses.clips, needed, model.dof_limits.numpy()):
             raise ValueError(f"{cfg.poses.library}: no clip holds {needed:.2f} s without a cut "
                              "(sequence.frames / sequence.fps); use fewer frames or longer clips")
     b = cfg.background

@@ -200,8 +200,11 @@ def person_labels(
         if z.min() <= 1e-6:
             pts = np.asarray(p["vertices"], np.float64)
             z = camera.world_to_camera(pts)[:, 2]
-        pv = camera.project(pts[z > 1e-6])
-        box_full = [float(pv[:, 0].min()), float(pv[:, 1].min()), float(pv[:, 0].max()), float(pv[:, 1].max())]
+        if (z > 1e-6).any():
+            pv = camera.project(pts[z > 1e-6])
+            box_full = [float(pv[:, 0].min()), float(pv[:, 1].min()), float(pv[:, 0].max()), float(pv[:, 1].max())]
+        else:  # wholly behind the camera (a sequence's camera can pass people by): no box
+            box_full = None
         out_people.append(
             {
                 "keypoints_2d": np.where(np.isnan(uv), 0.0, uv),

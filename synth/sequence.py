@@ -4,7 +4,7 @@ A sequence of ``T`` frames at ``F`` fps (``sequence.frames``, ``sequence.fps``) 
 from its own random generator (:func:`sequence_rng`), in this order:
 
 1. **People.** Each draws a subject, a motion-library clip (children: ``poses.child_clips`` when set)
-   and a window of it without a cut (:func:`clip_segments`), a heading (yaw about +Y, uniform) and
+   and a window of it without a cut (:func:`clip_segments`: a root or joint-angle jump), a heading (yaw about +Y, uniform) and
    plays the window from its start: the pose is interpolated between the clip's frames (a
    Catmull-Rom spline through the joint angles, kept inside their limits, and the root translation,
    so velocities are continuous; spherically in the root orientation).
@@ -12,8 +12,13 @@ from its own random generator (:func:`sequence_rng`), in this order:
    mean body's (the clip is retargeted to the mean body) and started at the origin.
 2. **The body is posed** on a half-frame grid, ``t_k = k h`` with ``h = 1 / (2F)``, ``k = -1 .. 2T - 1``:
    even ``k`` are the frames, odd ``k`` give central differences (velocities and contact) at every
-   frame, the first and last included. The person is lifted by one constant for the whole clip so
-   that its lowest vertex over the clip touches the ground ``y = 0`` (jumps stay jumps).
+   frame, the first and last included. **Grounding**: retargeted mocap floats and sinks by a few
+   centimetres from step to step, so the body is lifted per grid row: where a foot region (heel
+   or toe) is still (its lowest vertex slower than ``contact.speed``), by what puts the stillest
+   foot's lowest point on the ground ``y = 0``; between still phases (flight, a jump) the lift is
+   interpolated linearly, so jumps stay jumps; the lift is smoothed over ``STANCE_SMOOTHING_S``
+   and raised where a moving foot would dip more than ``PENETRATION_M`` under the ground. A clip
+   without a still foot is lifted by one constant, its lowest point over the clip on the ground.
 3. **Placement.** People are moved apart horizontally so that at every frame their footprint discs
    (the centre and radius of the body's hull in x-z, hair included) are ``people.gap`` apart: their
    trajectories never bring two bodies into one place at one time (they may cross a place at
@@ -42,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from synth.camera import outline_index
-from synth.camera_paths import Track, choose_kind, sample_path
+from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
 
 CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
@@ -52,6 +57,15 @@ FEET = ("heel_l", "heel_r", "toe_l", "toe_r")
 MAX_ROOT_SPEED = 8.0
 """m/s: a clip whose root moves faster between two frames has a cut there (CMU files often start
 with a calibration frame at the origin); windows never cross one."""
+STANCE_SMOOTHING_S = 0.05
+"""Seconds: the standard deviation of the Gaussian that smooths the stance lift (step 2)."""
+PENETRATION_M = 0.02
+"""Metres: how far a moving foot may dip under the ground (a retargeting error of the clip) before
+the body is raised; still feet are put on it."""
+MAX_ANGLE_SPEED_DEG = 1500.0
+"""Degrees a second: a joint angle changing faster between two frames of a clip is a cut (CMU's
+dances hold atoms that flip between their limits, 95 degrees in a frame, in up to 1 % of frames;
+walking peaks near 1000 degrees a second)."""
 KNEE_RADIUS = 0.1
 """Metres: the knee region is the shank's vertices this close to the knee joint."""
 
@@ -76,11 +90,19 @@ def needed_seconds(cfg: Any) -> float:
     return (cfg.frames - 1) / cfg.fps + 2 * max(0.5 / cfg.fps, blur)
 
 
-def clip_segments(transl: np.ndarray, fps: float) -> list[tuple[int, int]]:
-    """``[(first, last)]`` frame ranges of a clip without a cut (root faster than :data:`MAX_ROOT_SPEED`)."""
-    speed = np.linalg.norm(np.diff(transl, axis=0), axis=1) * fps
-    cuts = np.nonzero(speed > MAX_ROOT_SPEED)[0]
-    edges = [0, *(cuts + 1).tolist(), len(transl)]
+def clip_segments(clip: Any, limits: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """``[(first, last)]`` frame ranges of a clip without a cut: the root faster than
+    :data:`MAX_ROOT_SPEED` between two frames, or (with the model's ``limits`` (47, 2), radians) a
+    joint angle faster than :data:`MAX_ANGLE_SPEED_DEG` (an atom flipping between its limits, a
+    retargeting glitch: a flicker in a video)."""
+    fps = float(clip.fps)
+    jump = np.linalg.norm(np.diff(clip.transl, axis=0), axis=1) * fps > MAX_ROOT_SPEED
+    if limits is not None:
+        lim = np.asarray(limits, np.float64)
+        angles = 0.5 * (lim[:, 1] - lim[:, 0]) * np.tanh(np.asarray(clip.pose, np.float64))  # Eq. 6, less the midpoint
+        jump |= np.degrees(np.abs(np.diff(angles, axis=0))).max(1) * fps > MAX_ANGLE_SPEED_DEG
+    cuts = np.nonzero(jump)[0]
+    edges = [0, *(cuts + 1).tolist(), len(clip.transl)]
     return [(a, b - 1) for a, b in zip(edges[:-1], edges[1:]) if b - 1 > a]
 
 
@@ -122,14 +144,15 @@ def _catmull_rom(rows: np.ndarray, i: int, a: float) -> np.ndarray:
     )
 
 
-def draw_window(clips: list[Any], eligible: list[int], needed: float, rng: np.random.Generator) -> Window:
+def draw_window(clips: list[Any], eligible: list[int], needed: float, rng: np.random.Generator,
+                limits: np.ndarray | None = None) -> Window:
     """A window of ``needed`` seconds from one of the ``eligible`` clips (uniformly), inside a segment
     without a cut (segments weighted by the starts they allow), its start uniform."""
     ci = eligible[int(rng.integers(len(eligible)))]
     c = clips[ci]
     segs = [
         (a / c.fps, b / c.fps - needed)
-        for a, b in clip_segments(c.transl, c.fps)
+        for a, b in clip_segments(c, limits)
         if (b - a) / c.fps >= needed
     ]
     w = np.array([hi - lo + 1e-9 for lo, hi in segs])
@@ -137,12 +160,12 @@ def draw_window(clips: list[Any], eligible: list[int], needed: float, rng: np.ra
     return Window(c, float(rng.uniform(lo, hi)))
 
 
-def long_enough(clips: list[Any], needed: float) -> list[int]:
+def long_enough(clips: list[Any], needed: float, limits: np.ndarray | None = None) -> list[int]:
     """The clips with a segment of at least ``needed`` seconds."""
     return [
         i
         for i, c in enumerate(clips)
-        if any((b - a) / c.fps >= needed for a, b in clip_segments(c.transl, c.fps))
+        if any((b - a) / c.fps >= needed for a, b in clip_segments(c, limits))
     ]
 
 
@@ -214,7 +237,8 @@ class SequenceMaker:
         self.needed = needed_seconds(self.cfg)
         self.margin = 0.5 * (self.needed - (self.T - 1) / self.F)
         poses = maker.poses
-        self.eligible = long_enough(poses.clips, self.needed)
+        self.limits = maker.model.dof_limits.numpy()
+        self.eligible = long_enough(poses.clips, self.needed, self.limits)
         self.child_eligible = [i for i in self.eligible if i in poses.child_clips]
         if not self.eligible:
             raise ValueError(
@@ -245,7 +269,7 @@ class SequenceMaker:
         si = int(rng.integers(len(m.subjects)))
         age = m.subjects[si].meta.get("phenotype", {}).get("age_years")
         child = age is not None and age < 18.0 and self.child_eligible
-        win = draw_window(m.poses.clips, self.child_eligible if child else self.eligible, self.needed, rng)
+        win = draw_window(m.poses.clips, self.child_eligible if child else self.eligible, self.needed, rng, self.limits)
         yaw = float(rng.uniform(0, 2 * math.pi))
         turn = Rotation.from_rotvec([0.0, yaw, 0.0])
         start = win.at(0.0)[2]
@@ -275,10 +299,37 @@ class SequenceMaker:
             "si": si, "posed": posed, "frames": frames, "regions": regions,
             "keypoints": np.stack([g["keypoints"] for g in grid]).astype(np.float64),
             "region_vertices": {r: np.stack([g["vertices"][idx] for g in grid]).astype(np.float64) for r, idx in regions.items()},
-            "lowest": min(float(g["vertices"][:, 1].min()) for g in grid),
+            "lift": self._lift(grid, regions),
             "window": {"clip": win.clip.name, "start_s": round(win.start + self.margin, 6), "yaw_deg": round(math.degrees(yaw), 4),
                        "leg_scale": round(float(scale), 6)},
         }  # fmt: skip
+
+    def _lift(self, grid: list[dict[str, Any]], regions: dict[str, np.ndarray]) -> np.ndarray:
+        """The height (m) each grid row is lifted by (module docstring, step 2): where a foot is still,
+        its lowest point on the ground; between, interpolated; then smoothed, and raised where a
+        body would go more than :data:`PENETRATION_M` into the ground."""
+        from scipy.ndimage import gaussian_filter1d
+
+        lowest = np.array([float(g["vertices"][:, 1].min()) for g in grid])
+        heights, speeds = [], []
+        for r in FEET:
+            v = np.stack([g["vertices"][regions[r]] for g in grid]).astype(np.float64)  # (N, n, 3)
+            if v.shape[1] == 0:
+                continue
+            low = v[:, :, 1].argmin(1)
+            pts = v[np.arange(len(v)), low]  # the region's lowest vertex, per row
+            vel = np.gradient(v, self.h, axis=0)[np.arange(len(v)), low]
+            heights.append(pts[:, 1])
+            speeds.append(np.linalg.norm(vel, axis=1))
+        h, sp = np.array(heights), np.array(speeds)
+        still = sp <= self.cfg.contact.speed
+        ground = np.where(still, h, np.inf).min(0)  # the stillest feet's lowest point, per row
+        rows = np.nonzero(np.isfinite(ground))[0]
+        if len(rows) == 0:  # no foot ever still (a clip in the air): the clip's lowest point on the ground
+            return np.full(len(grid), -lowest.min())
+        lift = np.interp(np.arange(len(grid)), rows, -ground[rows])
+        lift = gaussian_filter1d(lift, STANCE_SMOOTHING_S / self.h, mode="nearest")
+        return np.maximum(lift, -lowest - PENETRATION_M)
 
     # -- a sequence
     def make(self, seq: int, rng: np.random.Generator) -> list[dict[str, bytes]]:
@@ -299,14 +350,14 @@ class SequenceMaker:
             footprints.append(np.array(rows))
         offsets = place_tracks(footprints, cfg.people.gap, rng)
         for p, o in zip(people, offsets):
-            d = np.array([o[0], -p["lowest"], o[1]])
-            p["offset"] = d
-            for fr in p["frames"]:
-                move_person(fr, d)
-                fr["outline"] = (fr["outline"] + d).astype(np.float32)
-            p["keypoints"] += d
+            p["offset"] = np.array([o[0], 0.0, o[1]])
+            rows = p["offset"] + np.outer(p["lift"], [0.0, 1.0, 0.0])  # (2T + 1, 3) per grid row
+            for f, fr in enumerate(p["frames"]):
+                move_person(fr, rows[2 * f + 1])
+                fr["outline"] = (fr["outline"] + rows[2 * f + 1]).astype(np.float32)
+            p["keypoints"] += rows[:, None]
             for r in p["region_vertices"]:
-                p["region_vertices"][r] += d
+                p["region_vertices"][r] += rows[:, None]
         step = max(1, T // 24)
         everyone = np.concatenate(
             [p["frames"][f]["outline"] for p in people for f in [*range(0, T, step), T - 1]]
@@ -354,7 +405,7 @@ class SequenceMaker:
         camera = path.at(t)
         frame_people = [p["frames"][f] for p in people]
         cam_info = {**path.base, "view": "normal", "truncated": False, "truncation": 0.0, "truncation_side": "",
-                    "focal_mm": round(float(camera.K[0, 0]) * 36.0 / camera.width, 6), "path": path.kind}  # fmt: skip
+                    "focal_mm": round(focal_mm(camera), 6), "path": path.kind}  # fmt: skip
         blur = self.cfg.motion_blur
         if blur.enabled and blur.subframes > 1:
             rgb = None
@@ -386,7 +437,8 @@ class SequenceMaker:
     def _posed_at(self, p: dict[str, Any], t: float) -> dict[str, Any]:
         """Person ``p`` posed at time ``t`` of the sequence (a motion-blur sub-frame), placed."""
         q = p["posed"](self.margin + t)
-        move_person(q, p["offset"])
+        lift = float(np.interp(t, (np.arange(len(p["lift"])) - 1) * self.h, p["lift"]))
+        move_person(q, p["offset"] + np.array([0.0, lift, 0.0]))
         v = self.m.shell(q)
         q["outline"] = v[outline_index(v)].astype(np.float32)
         return q

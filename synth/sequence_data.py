@@ -114,6 +114,16 @@ def world_mirror(R0: np.ndarray) -> np.ndarray:
     return np.eye(3) - 2.0 * np.outer(n, n)
 
 
+def fill_missing_boxes(boxes: np.ndarray) -> np.ndarray:
+    """Boxes (L, 4) with the rows of frames where the person has none (wholly behind the camera:
+    ``box_full`` null) linearly interpolated from the frames that have one (the nearest at the ends)."""
+    ok = np.isfinite(boxes).all(1)
+    if ok.all() or not ok.any():
+        return boxes
+    idx = np.arange(len(boxes))
+    return np.stack([np.interp(idx, idx[ok], boxes[ok, k]) for k in range(4)], 1)
+
+
 def smooth_boxes(centres: np.ndarray, sides: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
     """Centred moving average of (L, 2) crop centres and (L,) sides over ``window`` frames (the
     window shrinks at the clip's ends; ``window <= 1`` leaves them)."""
@@ -282,7 +292,7 @@ class SequenceDataset(torch.utils.data.Dataset):
         h, w = rgbs[0].shape[:2]
         n = len(samples)
         if track >= 0:
-            boxes = lab["box"][:, 0]  # (L, 4)
+            boxes = fill_missing_boxes(np.asarray(lab["box"][:, 0], np.float64))  # (L, 4)
             centres = (boxes[:, :2] + boxes[:, 2:]) / 2
             sides = np.maximum((boxes[:, 2:] - boxes[:, :2]).max(1), 1.0) * self.box_scale
             centres, sides = smooth_boxes(centres, sides, self.smooth)
@@ -383,7 +393,7 @@ class SequenceDataset(torch.utils.data.Dataset):
                     raise ValueError("the number of people differs from the clip's first frame")
                 cam = meta["camera"]
                 per = {
-                    "box": [fmt.person_box(q) for q in chosen],
+                    "box": [fmt.person_box(q) if q.get("box") or q.get("box_full") else (np.nan,) * 4 for q in chosen],
                     "kp2": [np.asarray(q["keypoints_2d"], np.float64)[self._sel] for q in chosen],
                     "vis": [fmt.seen_keypoints(q)[self._sel] for q in chosen],
                     "kp3": [np.asarray(q["keypoints_3d"], np.float64)[self._sel] for q in chosen],

@@ -3,7 +3,8 @@
 Per frame (on the mesh :mod:`synth.validate` rebuilds from the frame's parameters):
 
 - ``camera.to_world`` is the inverse of ``[R | t]``;
-- no vertex of a body is below the ground ``y = 0`` (beyond ``GROUND_TOLERANCE_M``);
+- no vertex of a body is further below the ground ``y = 0`` than a moving foot may dip
+  (``GROUND_TOLERANCE_M``, :mod:`synth.sequence`, Grounding);
 - where ``contact`` says a region touches the ground, one of the region's vertices is within
   ``contact_rule.distance`` of it (the speed half of the rule needs the neighbouring half-frames,
   which the labels do not hold).
@@ -27,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-GROUND_TOLERANCE_M = 1e-3
+GROUND_TOLERANCE_M = 0.021
+"""Metres: :data:`synth.sequence.PENETRATION_M` (a moving foot may dip that far) and 1 mm."""
 MAX_PERSON_SPEED = 8.0
 MAX_CAMERA_SPEED = 10.0
 MAX_CAMERA_TURN = 180.0

@@ -314,9 +314,13 @@ def test_contact_needs_both_nearness_and_stillness_and_regions_split_the_foot():
     assert all(len(reg[r]) for r in CONTACT_REGIONS)
 
 
-def test_clip_segments_split_at_a_cut():
+def test_clip_segments_split_at_a_cut_of_the_root_or_a_joint():
     clip = _walk("w", cut=True)
-    assert clip_segments(clip.transl, clip.fps) == [(1, 44)]
+    limits = blsm.load().dof_limits.numpy()
+    assert clip_segments(clip) == [(1, 44)] == clip_segments(clip, limits)
+    wide = int(np.argmax(limits[:, 1] - limits[:, 0]))
+    clip.pose[20:, wide] = 9.0  # the widest atom jumps from mid-range to its limit in one frame
+    assert clip_segments(clip, limits) == [(1, 19), (20, 44)]
 
 
 def test_bad_sequence_configs_are_one_line_errors(library, tmp_path):
@@ -357,3 +361,61 @@ def test_motion_blur_averages_subframes_and_keeps_the_centre_labels(library, cli
     rgb_a = fmt.decode_sample(a["000000001"])["rgb"].astype(float)
     rgb_b = fmt.decode_sample(b["000000001"])["rgb"].astype(float)
     assert np.abs(rgb_a - rgb_b).mean() > 0.1
+
+
+def test_a_warm_worker_compiles_no_kernel_for_new_sequences(library, clips):
+    """After its first sequence, a worker making new sequences (other people, clips, camera paths,
+    zoom changing the focal length within a shot) launches only kernels it has compiled already."""
+    import drjit as dr
+
+    from blsm.mitsuba_util import resolve_variant
+    from synth.generate import SampleMaker
+    from synth.sequence import sequence_rng
+
+    cfg = _cfg(library, sequence=dataclasses.replace(_cfg(library).sequence, cameras=CameraPaths()))
+    maker = SampleMaker(cfg, clips, resolve_variant(None), threads=0)
+    seqs = maker.sequences()
+    seqs.make(100, sequence_rng(cfg.seed, 100))  # warm-up
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()
+        kinds = set()
+        for s in range(200, 206):
+            kinds.add(json.loads(seqs.make(s, sequence_rng(cfg.seed, s))[0]["json"])["camera"]["path"]["kind"])
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert len(kinds) >= 3
+    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+    assert len(jit) >= 6 * 4 * 3
+    new = [(k["hash"], k["size"]) for k in jit if not k["cache_hit"] or k["cache_disk"]]
+    assert new == [], f"{len(new)} kernels compiled or loaded for new sequences"
+
+
+def test_a_person_wholly_behind_the_camera_has_no_box_and_loads():
+    """A moving camera can pass a person by: every label of that person says so (no pixel, no box,
+    ``box_full`` null, nothing in frame), and the clip loader fills the crop from the other frames."""
+    from blsm.camera import look_at_camera
+    from synth import labels as lab
+    from synth.render import Frame
+    from synth.sequence_data import fill_missing_boxes
+
+    model = blsm.load()
+    out = model()
+    v, kp = out.vertices[0].numpy().astype(np.float64), out.keypoints[0].numpy().astype(np.float64)
+    cam = look_at_camera(np.array([0.0, 1.0, -3.0]), np.array([0.0, 1.0, -10.0]), width=32, height=32)  # facing away
+    frame = Frame(rgb=np.zeros((32, 32, 3), np.float32), alpha=np.zeros((32, 32), np.float32), hit=np.zeros((32, 32), bool),
+                  position=np.zeros((32, 32, 3), np.float32), face=np.full((32, 32), -1))  # fmt: skip
+    faces = model.faces.numpy()
+    m = model
+    res = lab.person_labels(
+        frame, cam, [{"vertices": v, "faces": faces, "face_bones": lab.face_bones(faces, m.weights.numpy()), "keypoints": kp}],
+        lab.bone_parts(m.vertex_bones.numpy(), m.vertex_parts.numpy(), m.num_joints),
+        lab.keypoint_regions(m.keypoint_joint.numpy(), m.keypoint_vertices.numpy(), m.vertex_bones.numpy(), m.parents),
+        m.keypoint_joint.numpy() >= 0,
+    )  # fmt: skip
+    p = res["people"][0]
+    assert p["box"] is None and p["box_full"] is None and p["pixels"] == 0 and not p["in_frame"].any()
+    boxes = np.array([[0, 0, 10, 10], [np.nan] * 4, [np.nan] * 4, [6, 0, 16, 10]], np.float64)
+    assert np.allclose(fill_missing_boxes(boxes), [[0, 0, 10, 10], [2, 0, 12, 10], [4, 0, 14, 10], [6, 0, 16, 10]])
