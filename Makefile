@@ -40,7 +40,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_mesh.py --out docs/benchmarks.md
 	test -f out/motions/summary.csv || $(MAKE) motions
-	$(BIN)/python benchmarks/bench_video.py --out docs/benchmarks.md
+	$(BIN)/python benchmarks/bench_video.py --frames 180 --set people.min=2 --set people.max=2 --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_scale.py --out docs/benchmarks.md
 	$(MAKE) transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume

@@ -5,10 +5,11 @@ per pixel, people, HDRIs, motion library): one as single images (``sequence.enab
 each image a new draw of people, poses from the same clips, camera and light), one as
 ``--frames / T`` sequences of ``T`` frames. Each run is a whole ``synth generate`` in its own
 process (worker start-up, subjects loaded, kernels compiled or loaded, shards written), timed from
-the call to its end; the subjects are made once beforehand and copied in (not timed).
+the call to its end; the subjects (which depend on the seed) are made beforehand for each seed and
+copied in (not timed).
 
 - **cold**: a new ``HOME`` for each run, so Dr.Jit's kernel cache (``$HOME/.drjit``) starts empty;
-- **warm**: both kinds again, on the kernel caches their cold runs left, with other seeds, so no
+- **warm**: both kinds again, on the kernel caches their cold runs left, with another seed, so no
   run renders a sample an earlier one did. The order alternates (single, sequence, sequence,
   single) so that a drift of the machine does not favour one kind.
 - **motion blur**: ``--blur-frames`` frames of sequences with ``sequence.motion_blur`` on (warm).
@@ -17,12 +18,17 @@ Then the loader: :class:`synth.sequence_data.SequenceDataset` over the warm sequ
 clips of 16 frames (stride 8) cropped to 128 px around each person, in ``--loader-workers``
 DataLoader workers: clips/s and frames/s of the first pass (fresh worker processes) and a second.
 
-    python benchmarks/bench_video.py [--out docs/benchmarks.md] [--frames 120] [--workers 2]
+    python benchmarks/bench_video.py [--out docs/benchmarks.md] [--frames 120] [--workers 2] [--set KEY=VALUE]
+
+``make bench`` fixes the people count at 2 (``--set people.min=2 --set people.max=2``): a frame's cost
+grows with the people in it, and a sequence draws the count once for all its frames, so with a few
+sequences a run the draw, not the generator, would decide the ratio.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
@@ -92,8 +98,14 @@ def main() -> int:
         raise SystemExit(f"--frames {args.frames} is not a multiple of the config's {T} frames a sequence")
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_video_"))
     work.mkdir(parents=True, exist_ok=True)
-    prepare_subjects(cfg, work / "made", blsm.load())
-    subjects = work / "made" / "subjects"
+    # Subjects depend on the seed: made for each seed used (not timed).
+    seeds = {"cold": cfg.seed, "warm": cfg.seed + 1000, "blur": cfg.seed + 2000}
+    subjects = {}
+    for name, seed in seeds.items():
+        if name == "blur" and not args.blur_frames:
+            continue
+        prepare_subjects(dataclasses.replace(cfg, seed=seed), work / f"made_{name}", blsm.load())
+        subjects[name] = work / f"made_{name}" / "subjects"
     single = [*args.set, "sequence.enabled=false", f"num={args.frames}"]
     seq = [*args.set, f"num={args.frames // T}"]
     records = []
@@ -103,11 +115,9 @@ def main() -> int:
         if cache == "cold":
             shutil.rmtree(home, ignore_errors=True)
             home.mkdir()
-        seed = cfg.seed + (0 if cache == "cold" else 1000)  # warm: other samples than the cold run's
-        sets = (single if kind == "single" else seq) + [f"seed={seed}"]
-        # Subjects depend on the seed: the warm runs reuse the cold runs' (made for cfg.seed).
+        sets = (single if kind == "single" else seq) + [f"seed={seeds[cache]}"]  # warm: other samples than cold's
         out = work / f"run_{r}_{kind}_{cache}"
-        dt = _generate(args.config, sets, out, subjects, args.workers, home)
+        dt = _generate(args.config, sets, out, subjects[cache], args.workers, home)
         rec = {"kind": kind, "cache": cache, "images": args.frames, "seconds": round(dt, 2),
                "img_per_s": round(args.frames / dt, 3)}  # fmt: skip
         records.append(rec)
@@ -117,8 +127,8 @@ def main() -> int:
         else:
             loader_data = out
     if args.blur_frames:  # motion blur: warm, its own seed, per frame against the warm sequences
-        sets = seq[:-1] + [f"num={args.blur_frames // T}", f"seed={cfg.seed + 2000}", "sequence.motion_blur.enabled=true"]
-        dt = _generate(args.config, sets, work / "run_blur", subjects, args.workers, work / "home_sequence")
+        sets = [*args.set, f"num={args.blur_frames // T}", f"seed={seeds['blur']}", "sequence.motion_blur.enabled=true"]
+        dt = _generate(args.config, sets, work / "run_blur", subjects["blur"], args.workers, work / "home_sequence")
         rec = {"kind": "sequence_blur", "cache": "warm", "images": args.blur_frames, "seconds": round(dt, 2),
                "img_per_s": round(args.blur_frames / dt, 3), "subframes": cfg.sequence.motion_blur.subframes}  # fmt: skip
         records.append(rec)
@@ -130,8 +140,10 @@ def main() -> int:
     if args.json:
         args.json.write_text(json.dumps({"records": records, "loader": loader}, indent=1) + "\n")
     if args.out:
+        cmd = " ".join(["python benchmarks/bench_video.py", *([f"--frames {args.frames}"] if args.frames != 120 else []),
+                        *[f"--set {x}" for x in args.set], f"--out {args.out}"])
         write_section(args.out, "video", "Sequences against single images (CPU)", "benchmarks/bench_video.py",
-                      _report(cfg, args, records, loader))
+                      _report(cfg, args, records, loader), command=f"`make bench` (runs `{cmd}`)")
     if args.work is None:
         shutil.rmtree(work, ignore_errors=True)
     return 0
@@ -144,7 +156,11 @@ def _report(cfg, args, records: list[dict], loader: list[dict]) -> list[str]:
         f"{cfg.people.min}-{cfg.people.max} people, {cfg.background.kind} backgrounds; sequences of "
         f"{cfg.sequence.frames} frames at {cfg.sequence.fps:g} fps (camera paths by the default weights). Each run makes "
         f"{args.frames} new images in a whole `synth generate` ({args.workers} workers, {os.cpu_count()} cpus), "
-        "timed from the call to its end (start-up, kernels, shards included; subjects made beforehand).",
+        "timed from the call to its end (start-up, kernels, shards included; subjects made beforehand)."
+        + (f" Overrides: `{' '.join(args.set)}`." if args.set else "")
+        + (" The people count is fixed because a frame's cost grows with it and a sequence draws it once for all "
+           "its frames: with a few sequences a run, that one draw would decide the ratio." if any(
+               k.startswith("people.") for k in args.set) else ""),
         "",
         "| kernel cache | single images img/s | sequence frames/s | sequence / single |",
         "|---|---|---|---|",

@@ -10,9 +10,9 @@ from its own random generator (:func:`sequence_rng`), in this order:
    so velocities are continuous; spherically in the root orientation).
    The root's path is the clip's, turned by the heading, scaled by the subject's leg length over the
    mean body's (the clip is retargeted to the mean body) and started at the origin.
-2. **The body is posed** on a half-frame grid, ``t_k = k h`` with ``h = 1 / (2F)``, ``k = -1 .. 2T - 1``:
-   even ``k`` are the frames, odd ``k`` give central differences (velocities and contact) at every
-   frame, the first and last included. **Grounding**: retargeted mocap floats and sinks by a few
+2. **The body is posed** at every frame and one frame before the first and after the last,
+   ``t_k = k / F`` for ``k = -1 .. T``, so that central differences (velocities and contact) exist
+   at every frame, the first and last included. **Grounding**: retargeted mocap floats and sinks by a few
    centimetres from step to step, so the body is lifted per grid row: where a foot region (heel
    or toe) is still (its lowest vertex slower than ``contact.speed``), by what puts the stillest
    foot's lowest point on the ground ``y = 0``; between still phases (flight, a jump) the lift is
@@ -85,9 +85,9 @@ def sequence_rng(seed: int, sequence: int) -> np.random.Generator:
 
 def needed_seconds(cfg: Any) -> float:
     """Seconds of clip a sequence plays (``cfg``: :class:`synth.config.SequenceConfig`): its frames'
-    span plus, either side, half a frame (the central differences) or half the shutter (motion blur)."""
+    span plus, either side, a frame (the central differences) or half the shutter (motion blur)."""
     blur = cfg.motion_blur.shutter / (2 * cfg.fps) if cfg.motion_blur.enabled else 0.0
-    return (cfg.frames - 1) / cfg.fps + 2 * max(0.5 / cfg.fps, blur)
+    return (cfg.frames - 1) / cfg.fps + 2 * max(1.0 / cfg.fps, blur)
 
 
 def clip_segments(clip: Any, limits: np.ndarray | None = None) -> list[tuple[int, int]]:
@@ -233,7 +233,7 @@ class SequenceMaker:
         self.m = maker
         self.cfg = maker.cfg.sequence
         self.T, self.F = self.cfg.frames, float(self.cfg.fps)
-        self.h = 0.5 / self.F
+        self.h = 1.0 / self.F
         self.needed = needed_seconds(self.cfg)
         self.margin = 0.5 * (self.needed - (self.T - 1) / self.F)
         poses = maker.poses
@@ -262,7 +262,7 @@ class SequenceMaker:
 
     # -- people
     def _person(self, rng: np.random.Generator) -> dict[str, Any]:
-        """One person's clip, posed on the half-frame grid (module docstring, steps 1-2)."""
+        """One person's clip, posed on the frame grid (module docstring, steps 1-2)."""
         from scipy.spatial.transform import Rotation
 
         m = self.m
@@ -288,13 +288,13 @@ class SequenceMaker:
                            "time": round(float(q / win.clip.fps), 6)}  # fmt: skip
             return p
 
-        grid = [posed(self.margin + k * self.h) for k in range(-1, 2 * self.T)]  # k = -1 .. 2T - 1
+        grid = [posed(self.margin + k * self.h) for k in range(-1, self.T + 1)]  # k = -1 .. T
         first = grid[1]
         vb = first["vertex_bones"]
         if first["rig"]["parents"] is not None:
             vb = vb[first["rig"]["parents"][:, 0]]
         regions = contact_regions(m.model, vb, first["vertices"], first["keypoints"])
-        frames = grid[1::2]
+        frames = grid[1:-1]
         return {
             "si": si, "posed": posed, "frames": frames, "regions": regions,
             "keypoints": np.stack([g["keypoints"] for g in grid]).astype(np.float64),
@@ -351,10 +351,10 @@ class SequenceMaker:
         offsets = place_tracks(footprints, cfg.people.gap, rng)
         for p, o in zip(people, offsets):
             p["offset"] = np.array([o[0], 0.0, o[1]])
-            rows = p["offset"] + np.outer(p["lift"], [0.0, 1.0, 0.0])  # (2T + 1, 3) per grid row
+            rows = p["offset"] + np.outer(p["lift"], [0.0, 1.0, 0.0])  # (T + 2, 3) per grid row
             for f, fr in enumerate(p["frames"]):
-                move_person(fr, rows[2 * f + 1])
-                fr["outline"] = (fr["outline"] + rows[2 * f + 1]).astype(np.float32)
+                move_person(fr, rows[f + 1])
+                fr["outline"] = (fr["outline"] + rows[f + 1]).astype(np.float32)
             p["keypoints"] += rows[:, None]
             for r in p["region_vertices"]:
                 p["region_vertices"][r] += rows[:, None]
@@ -382,7 +382,7 @@ class SequenceMaker:
 
     def _labels(self, p: dict[str, Any], f: int) -> dict[str, Any]:
         """Velocities and contact of person ``p`` at frame ``f`` (central differences on the grid)."""
-        k = 2 * f + 1  # the frame's row on the grid (row 0 is k = -1)
+        k = f + 1  # the frame's row on the grid (row 0 is k = -1)
         kp = p["keypoints"]
         vel = (kp[k + 1] - kp[k - 1]) / (2 * self.h)
         c = self.cfg.contact

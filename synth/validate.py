@@ -74,6 +74,7 @@ class MeshRebuilder:
         self.subjects: dict[str, Any] = {}
         self.hair: dict[tuple, Any] = {}
         self.dataset = dataset
+        self.regions: dict[tuple, dict[str, np.ndarray]] = {}  # a sequence person's contact regions
         self.load = load_subject
         self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
         self.parents = subdivide(self.model.faces.numpy()) if self.subdivide else None
@@ -289,7 +290,8 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
         if "contact" in p:
             from synth.validate_sequence import check_contact
 
-            for msg in check_contact(rebuild.model, rebuild.bones, verts[: len(rebuild.bones)], kp_re, p, doc):
+            for msg in check_contact(rebuild.model, rebuild.bones, verts[: len(rebuild.bones)], kp_re, p, doc,
+                                     rebuild.regions):
                 rep.fail(pw, msg)
         vc = verts @ cam.R.T + cam.t
         if (vc[:, 2] <= 1e-3).any():

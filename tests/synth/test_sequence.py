@@ -166,6 +166,18 @@ def test_validate_catches_a_sequence_whose_frames_jump_or_touch_nothing(clips, t
     msgs = check_contact(rb.model, rb.bones, v[: len(rb.bones)], kp, p, d)
     assert any(m.startswith("contact head") for m in msgs) is False
     assert any("above the ground" in m for m in msgs)
+    # The whole rule (nearness and speed) at the inner frames, on the rebuilt bodies.
+    regions: dict = {}
+    for q in clip.values():
+        for person in q["people"]:
+            v, _, kp = rb.mesh(person)
+            check_contact(rb.model, rb.bones, v[: len(rb.bones)], kp, person, q, regions)
+    assert check_sequences(clip, cfg, 0) == []
+    q = clip["000000001"]["people"][0]
+    stance = next((r for r in CONTACT_REGIONS if q["contact"][r]), None)
+    flip = stance or "heel_l"
+    q["contact"][flip] = not q["contact"][flip]
+    assert any(f"frame 1 contact {flip}" in m for m in check_sequences(clip, cfg, 0))
 
 
 def test_sigkill_mid_sequence_then_resume_gives_the_same_bytes(library, clips, tmp_path):
