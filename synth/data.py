@@ -56,7 +56,7 @@ from synth.shards import MANIFEST
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-_MEAN, _STD = torch.tensor(IMAGENET_MEAN).view(3, 1, 1), torch.tensor(IMAGENET_STD).view(3, 1, 1)
+MEAN_CHW, STD_CHW = torch.tensor(IMAGENET_MEAN).view(3, 1, 1), torch.tensor(IMAGENET_STD).view(3, 1, 1)
 _FIELDS = ("json", "rgb.png", "mask.png", "parts.png")
 _PART_SWAP = torch.tensor([0] + [1 + fmt.PART_NAMES.index(mirror_name(n)) for n in fmt.PART_NAMES])
 
@@ -320,7 +320,7 @@ def check_png_crc(data: bytes, what: str) -> None:
 
 
 @functools.cache
-def _model() -> Any:
+def blsm_model() -> Any:
     import blsm
 
     return blsm.load()
@@ -331,10 +331,10 @@ def resolve_keypoints(names: Sequence[str], keypoints: str | Sequence[str]) -> l
     if isinstance(keypoints, str) and keypoints == "all":
         return list(range(len(names)))
     if isinstance(keypoints, str):
-        sets = _model().keypoint_sets
+        sets = blsm_model().keypoint_sets
         if keypoints not in sets:
             raise ValueError(f"unknown keypoint set {keypoints!r}; known: 'all', {sorted(sets)}")
-        keypoints = [_model().keypoint_names[k] for k in sets[keypoints]]
+        keypoints = [blsm_model().keypoint_names[k] for k in sets[keypoints]]
     missing = [n for n in keypoints if n not in names]
     if missing:
         raise ValueError(f"keypoints {missing} are not in the dataset's keypoint_names")
@@ -352,7 +352,28 @@ def mirror_permutation(names: Sequence[str]) -> list[int]:
     return perm
 
 
-class SynthDataset(torch.utils.data.Dataset):
+class SeededDataset(torch.utils.data.Dataset):
+    """A dataset of ``items`` whose random draws (augmentation, flips) are a function of ``(seed,
+    epoch, index)`` when ``seed`` is set, and fresh otherwise."""
+
+    items: list[Any]
+    seed: int | None = None
+    epoch: int = 0
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Select the epoch of seeded draws (takes effect in workers started afterwards)."""
+        self.epoch = int(epoch)
+
+    def item_rng(self, i: int) -> np.random.Generator:
+        """The random generator of item ``i`` in this epoch."""
+        seed = [self.seed, self.epoch, i] if self.seed is not None else int(torch.randint(0, 2**62, ()))
+        return np.random.default_rng(seed)
+
+
+class SynthDataset(SeededDataset):
     """Person crops with 2D/3D keypoints, BLSM parameters and masks (see the module docstring).
 
     Args:
@@ -423,21 +444,12 @@ class SynthDataset(torch.utils.data.Dataset):
         self.keypoint_names = [names[k] for k in sel]
         self._sel, self._pelvis = np.asarray(sel), names.index("pelvis")
         self._kp_perm = np.asarray(mirror_permutation(self.keypoint_names))
-        perm, sign = _model().dof_mirror
+        perm, sign = blsm_model().dof_mirror
         self._dof_perm, self._dof_sign = perm.numpy().copy(), sign.numpy().astype(np.float64)
         self.index.close()
 
-    def __len__(self) -> int:
-        return len(self.items)
-
-    def set_epoch(self, epoch: int) -> None:
-        """Select the epoch of seeded augmentation (takes effect in workers started afterwards)."""
-        self.epoch = int(epoch)
-
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        seed = [self.seed, self.epoch, i] if self.seed is not None else int(torch.randint(0, 2**62, ()))
-        rng = np.random.default_rng(seed)
-        return self.get(i, draw_params(self.augment, rng))
+        return self.get(i, draw_params(self.augment, self.item_rng(i)))
 
     def get(self, i: int, params: CropParams) -> dict[str, torch.Tensor]:
         """Item ``i`` with the given augmentation (``__getitem__`` draws ``params``)."""
@@ -453,7 +465,7 @@ class SynthDataset(torch.utils.data.Dataset):
         image = warp_to_crop(torch.tensor(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop)
         image = color_jitter((image * torch.tensor(params.color).view(3, 1, 1)).clamp(0.0, 1.0), params.jitter)
         if self.normalize:
-            image = (image - _MEAN) / _STD
+            image = (image - MEAN_CHW) / STD_CHW
         labels = torch.from_numpy(np.stack([own, np.where(own, parts, 0)]).astype(np.float32))
         labels = warp_to_crop(labels, amat, self.crop, mode="nearest")
         part_map = labels[1].round().long()

@@ -103,7 +103,7 @@ def clip_segments(clip: Any, limits: np.ndarray | None = None) -> list[tuple[int
         jump |= np.degrees(np.abs(np.diff(angles, axis=0))).max(1) * fps > MAX_ANGLE_SPEED_DEG
     cuts = np.nonzero(jump)[0]
     edges = [0, *(cuts + 1).tolist(), len(clip.transl)]
-    return [(a, b - 1) for a, b in zip(edges[:-1], edges[1:]) if b - 1 > a]
+    return [(a, b - 1) for a, b in zip(edges[:-1], edges[1:], strict=False) if b - 1 > a]
 
 
 @dataclass(frozen=True)
@@ -349,7 +349,7 @@ class SequenceMaker:
                 rows.append([c[0], c[1], float(np.linalg.norm(xz - c, axis=1).max())])
             footprints.append(np.array(rows))
         offsets = place_tracks(footprints, cfg.people.gap, rng)
-        for p, o in zip(people, offsets):
+        for p, o in zip(people, offsets, strict=False):
             p["offset"] = np.array([o[0], 0.0, o[1]])
             rows = p["offset"] + np.outer(p["lift"], [0.0, 1.0, 0.0])  # (T + 2, 3) per grid row
             for f, fr in enumerate(p["frames"]):
@@ -387,7 +387,7 @@ class SequenceMaker:
         vel = (kp[k + 1] - kp[k - 1]) / (2 * self.h)
         c = self.cfg.contact
         touch, rule = {}, {}
-        for r, kpi in zip(CONTACT_REGIONS, self.region_kp):
+        for r, kpi in zip(CONTACT_REGIONS, self.region_kp, strict=False):
             rv = p["region_vertices"][r]
             speeds = np.linalg.norm(rv[k + 1] - rv[k - 1], axis=1) / (2 * self.h)
             touch[r] = contact(rv[k][:, 1], speeds, c.distance, c.speed) if len(rv[k]) else False
@@ -427,7 +427,7 @@ class SequenceMaker:
                  "contact_rule": {"distance": c.distance, "speed": c.speed, "velocity_rule": c.velocity_rule},
                  **({"motion_blur": {"subframes": blur.subframes, "shutter": blur.shutter}} if blur.enabled else {})}  # fmt: skip
         extra_people = []
-        for i, (p, lp) in enumerate(zip(people, labels["people"])):
+        for i, (p, lp) in enumerate(zip(people, labels["people"], strict=False)):
             sl = self._labels(p, f)
             extra_people.append({"track": i, "velocity_3d": _l(sl["velocity_3d"]), "contact": sl["contact"],
                                  "contact_velocity": sl["contact_velocity"], "in_view": bool(lp["pixels"] > 0),

@@ -78,10 +78,11 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_
 from blsm.skeleton import mirror_name
 from synth import format as fmt
 from synth.data import (
-    _MEAN,
-    _STD,
+    MEAN_CHW,
+    STD_CHW,
     DatasetIndex,
-    _model,
+    SeededDataset,
+    blsm_model,
     check_png_crc,
     crop_affine,
     mirror_permutation,
@@ -136,7 +137,7 @@ def smooth_boxes(centres: np.ndarray, sides: np.ndarray, window: int) -> tuple[n
     return mean[:, :2], mean[:, 2]
 
 
-class SequenceDataset(torch.utils.data.Dataset):
+class SequenceDataset(SeededDataset):
     """Clips of ``clip_len`` frames of a sequence dataset (see the module docstring).
 
     Args:
@@ -241,7 +242,7 @@ class SequenceDataset(torch.utils.data.Dataset):
         self.keypoint_names = [names[k] for k in sel]
         self._sel = np.asarray(sel)
         self._kp_perm = np.asarray(mirror_permutation(self.keypoint_names))
-        model = _model()
+        model = blsm_model()
         perm, sign = model.dof_mirror
         self._dof_perm, self._dof_sign = perm.numpy().copy(), sign.numpy().astype(np.float64)
         self._root = model.heads[0].double().numpy()  # the joint global_orient turns about (rest pose)
@@ -272,17 +273,8 @@ class SequenceDataset(torch.utils.data.Dataset):
                 run = [f]
         return out
 
-    def __len__(self) -> int:
-        return len(self.items)
-
-    def set_epoch(self, epoch: int) -> None:
-        """Select the epoch of seeded draws (takes effect in workers started afterwards)."""
-        self.epoch = int(epoch)
-
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        seed = [self.seed, self.epoch, i] if self.seed is not None else int(torch.randint(0, 2**62, ()))
-        rng = np.random.default_rng(seed)
-        return self.get(i, flip=bool(rng.uniform() < self.flip_prob))
+        return self.get(i, flip=bool(self.item_rng(i).uniform() < self.flip_prob))
 
     def get(self, i: int, flip: bool = False) -> dict[str, torch.Tensor]:
         """Clip ``i``, flipped or not (``__getitem__`` draws ``flip``)."""
@@ -308,7 +300,7 @@ class SequenceDataset(torch.utils.data.Dataset):
             ]
         )
         if self.normalize:
-            images = (images - _MEAN) / _STD
+            images = (images - MEAN_CHW) / STD_CHW
 
         uv = np.einsum("lij,lpkj->lpki", amat[:, :2, :2], lab["kp2"]) + amat[:, None, None, :2, 2]
         vis = lab["vis"] & (uv >= 0).all(-1) & (uv < self.crop).all(-1)
