@@ -3,7 +3,8 @@ validated and drawn; contact against the field's velocity rule on walking clips.
 
 1. For each camera path of :data:`synth.camera_paths.PATHS`: ``--sequences`` sequences of
    ``configs/synth/video.yaml`` with only that path (its weight 1, the others 0), into
-   ``OUT/paths/<path>``; ``synth validate`` on it; a contact sheet (``<path>_sheet.png``) and a
+   ``OUT/paths/<path>`` (each path with its own seed, the config's plus its number, so that the
+   paths show other people, clips and backgrounds); ``synth validate`` on it; a contact sheet (``<path>_sheet.png``) and a
    preview (``<path>.png``, an animated PNG) of its first sequence in ``OUT``.
 2. Contact on walking clips: ``--walks`` sequences of the CMU walking clips (subject 7, 007_01 to
    007_11) under a static camera, rendered small (contact does not depend on the image); per
@@ -51,9 +52,13 @@ def paths(args: argparse.Namespace) -> dict:
 
     synth = str(Path(sys.executable).with_name("synth"))
     rows = {}
-    for kind in PATHS:
+    from synth.config import load_config
+
+    seed = load_config(args.config).seed
+    for i, kind in enumerate(PATHS):
         out = args.out / "paths" / kind
-        sets = [f"sequence.cameras.{k}={1.0 if k == kind else 0.0}" for k in PATHS]
+        # Each path its own seed: other people, clips and backgrounds than the other paths'.
+        sets = [f"sequence.cameras.{k}={1.0 if k == kind else 0.0}" for k in PATHS] + [f"seed={seed + i}"]
         t0 = time.time()
         _run([synth, "generate", args.config, "--out", str(out), "--num", str(args.sequences), "--workers", str(args.workers),
               "--resume", *sum((["--set", s] for s in sets + list(args.set)), [])])
@@ -62,7 +67,8 @@ def paths(args: argparse.Namespace) -> dict:
         _run([synth, "preview", str(out), "--sequence", "0", "--video", str(args.out / f"{kind}.png"),
               "--sheet", str(args.out / f"{kind}_sheet.png"), "--count", "8"])
         docs = _docs(out)
-        rows[kind] = {"validate": line, "frames": len(docs), "seconds": round(made, 1),
+        rows[kind] = {"validate": line, "frames": len(docs), "seconds": round(made, 1), "seed": seed + i,
+                      "people": len(docs[0]["people"]), "clips": sorted({p["motion"]["clip"] for p in docs[0]["people"]}),
                       "in_view": round(float(np.mean([p["in_view"] for d in docs for p in d["people"]])), 3),
                       "path": docs[0]["camera"]["path"]}  # fmt: skip
         print(f"[video_check] {kind}: {line}; {len(docs)} frames in {made:.0f} s", flush=True)

@@ -23,8 +23,9 @@ from its own random generator (:func:`sequence_rng`), in this order:
    (the centre and radius of the body's hull in x-z, hair included) are ``people.gap`` apart: their
    trajectories never bring two bodies into one place at one time (they may cross a place at
    different times).
-4. **Camera and light.** A camera path (:mod:`synth.camera_paths`), one background, exposure and
-   environment rotation for the whole clip.
+4. **Camera and light.** A camera path (:mod:`synth.camera_paths`) that keeps
+   ``CAMERA_CLEARANCE_M`` from every body at every frame (drawn again until it does), one
+   background, exposure and environment rotation for the whole clip.
 5. **Frames.** Each frame is rendered and labelled as a single image is (:class:`synth.generate.SampleMaker`),
    plus the sequence's labels (docs/video.md): the camera-to-world transform and path, each
    person's ``track``, ``velocity_3d``, ``contact``, ``contact_velocity`` and ``in_view``. With
@@ -66,6 +67,11 @@ MAX_ANGLE_SPEED_DEG = 1500.0
 """Degrees a second: a joint angle changing faster between two frames of a clip is a cut (CMU's
 dances hold atoms that flip between their limits, 95 degrees in a frame, in up to 1 % of frames;
 walking peaks near 1000 degrees a second)."""
+CAMERA_CLEARANCE_M = 0.5
+"""Metres: a camera path passes no person's body (hull vertices) closer than this at any frame; a
+path that would is drawn again (its kind kept) up to ``PATH_TRIES`` times, then replaced by a
+static camera, which frames everyone from outside (``camera.path.tries`` records the draws)."""
+PATH_TRIES = 20
 KNEE_RADIUS = 0.1
 """Metres: the knee region is the shank's vertices this close to the knee joint."""
 
@@ -367,18 +373,28 @@ class SequenceMaker:
             np.array([0.5 * (fr["outline"].min(0) + fr["outline"].max(0)) for fr in people[0]["frames"]]),
         )
         kind = choose_kind(self.cfg.cameras.weights(), rng)
-        path = sample_path(
-            kind,
-            cfg.camera,
-            self.cfg.cameras,
-            everyone,
-            people[0]["frames"][0]["outline"],
-            follow,
-            (T - 1) / F,
-            rng,
-        )
+        tries = 0
+        while True:
+            tries += 1
+            if tries > PATH_TRIES:  # a tripod framing everyone from outside them
+                kind = "static"
+            path = sample_path(kind, cfg.camera, self.cfg.cameras, everyone, people[0]["frames"][0]["outline"], follow,
+                               (T - 1) / F, rng)  # fmt: skip
+            if tries > PATH_TRIES or self._clear(path, people):
+                break
+        path.params["tries"] = tries
         back = m.background(rng, path.at(0.0))
         return [self._frame(seq, f, people, path, back, rng) for f in range(T)]
+
+    def _clear(self, path: Any, people: list[dict[str, Any]]) -> bool:
+        """The camera keeps :data:`CAMERA_CLEARANCE_M` from every person's hull at every frame."""
+        for f in range(self.T):
+            cam = path.at(f / self.F)
+            eye = -cam.R.T @ cam.t
+            for p in people:
+                if np.linalg.norm(p["frames"][f]["outline"] - eye, axis=1).min() < CAMERA_CLEARANCE_M:
+                    return False
+        return True
 
     def _labels(self, p: dict[str, Any], f: int) -> dict[str, Any]:
         """Velocities and contact of person ``p`` at frame ``f`` (central differences on the grid)."""

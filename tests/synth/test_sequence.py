@@ -109,6 +109,10 @@ def test_a_sequence_dataset_validates_and_carries_the_sequence_labels(clips):
         assert len({json.dumps(d["background"]["rotation"]) for d in clip}) == 1
     for d in docs:
         assert d["time"] == pytest.approx(d["frame"] / 30.0)
+        assert 1 <= d["camera"]["path"]["tries"] <= 21
+        eye = -np.array(d["camera"]["R"]).T @ np.array(d["camera"]["t"])
+        near = min(np.linalg.norm(np.array(p["keypoints_3d"]) - eye, axis=1).min() for p in d["people"])
+        assert near > 0.3 or d["camera"]["path"]["tries"] == 21  # the camera keeps clear of the bodies
         r, t = np.array(d["camera"]["R"]), np.array(d["camera"]["t"])
         c = np.array(d["camera"]["to_world"])
         assert np.allclose(c[:3, :3], r.T, atol=2e-6) and np.allclose(c[:3, 3], -r.T @ t, atol=2e-5)
