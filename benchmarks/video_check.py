@@ -38,13 +38,14 @@ def _run(cmd: list[str]) -> str:
 
 
 def _docs(dataset: Path) -> list[dict]:
-    from synth.shards import read_shard
+    """Every sample's labels in key order (:meth:`synth.data.DatasetIndex.json`)."""
+    from synth.data import DatasetIndex
 
-    out = []
-    for shard in sorted(dataset.glob("shard-*.tar")):
-        d = read_shard(shard)
-        out += [json.loads(d[k]["json"]) for k in sorted(d)]
-    return out
+    index = DatasetIndex(dataset)
+    try:
+        return [index.json(i) for i in range(len(index))]
+    finally:
+        index.close()
 
 
 def paths(args: argparse.Namespace) -> dict:

@@ -872,12 +872,9 @@ def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
     ValueError names the first bad one."""
     poses = PoseSource(cfg)
     if cfg.sequence.enabled:
-        from synth.sequence import long_enough, needed_seconds
+        from synth.sequence import eligible_clips
 
-        needed = needed_seconds(cfg.sequence)
-        if not long_enough(poses.clips, needed, model.dof_limits.numpy()):
-            raise ValueError(f"{cfg.poses.library}: no clip holds {needed:.2f} s without a cut "
-                             "(sequence.frames / sequence.fps); use fewer frames or longer clips")
+        eligible_clips(cfg, poses.clips, model.dof_limits.numpy())
     b = cfg.background
     if b.kind == "hdri":
         bg.check_files(bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude), b.kind, b.env_width)

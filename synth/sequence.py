@@ -175,6 +175,17 @@ def long_enough(clips: list[Any], needed: float, limits: np.ndarray | None = Non
     ]
 
 
+def eligible_clips(cfg: Any, clips: list[Any], limits: np.ndarray) -> list[int]:
+    """The clips a sequence of ``cfg`` (:class:`synth.config.GeneratorConfig`) can play: a
+    ValueError naming the motion library when none is long enough."""
+    needed = needed_seconds(cfg.sequence)
+    out = long_enough(clips, needed, limits)
+    if not out:
+        raise ValueError(f"{cfg.poses.library}: no clip holds {needed:.2f} s without a cut "
+                         "(sequence.frames / sequence.fps); use fewer frames or longer clips")
+    return out
+
+
 def contact_regions(
     model: Any, vertex_bones: np.ndarray, vertices: np.ndarray, keypoints: np.ndarray
 ) -> dict[str, np.ndarray]:
@@ -244,13 +255,8 @@ class SequenceMaker:
         self.margin = 0.5 * (self.needed - (self.T - 1) / self.F)
         poses = maker.poses
         self.limits = maker.model.dof_limits.numpy()
-        self.eligible = long_enough(poses.clips, self.needed, self.limits)
+        self.eligible = eligible_clips(maker.cfg, poses.clips, self.limits)
         self.child_eligible = [i for i in self.eligible if i in poses.child_clips]
-        if not self.eligible:
-            raise ValueError(
-                f"{maker.cfg.poses.library}: no clip holds {self.needed:.2f} s without a cut "
-                f"(sequence.frames / sequence.fps); use fewer frames or longer clips"
-            )
         model = maker.model
         with torch.no_grad():
             rest = model().rest_joints[0].numpy()
@@ -300,17 +306,18 @@ class SequenceMaker:
         if first["rig"]["parents"] is not None:
             vb = vb[first["rig"]["parents"][:, 0]]
         regions = contact_regions(m.model, vb, first["vertices"], first["keypoints"])
+        region_vertices = {r: np.stack([g["vertices"][idx] for g in grid]).astype(np.float64) for r, idx in regions.items()}
         frames = grid[1:-1]
         return {
             "si": si, "posed": posed, "frames": frames, "regions": regions,
             "keypoints": np.stack([g["keypoints"] for g in grid]).astype(np.float64),
-            "region_vertices": {r: np.stack([g["vertices"][idx] for g in grid]).astype(np.float64) for r, idx in regions.items()},
-            "lift": self._lift(grid, regions),
+            "region_vertices": region_vertices,
+            "lift": self._lift(grid, region_vertices),
             "window": {"clip": win.clip.name, "start_s": round(win.start + self.margin, 6), "yaw_deg": round(math.degrees(yaw), 4),
                        "leg_scale": round(float(scale), 6)},
         }  # fmt: skip
 
-    def _lift(self, grid: list[dict[str, Any]], regions: dict[str, np.ndarray]) -> np.ndarray:
+    def _lift(self, grid: list[dict[str, Any]], region_vertices: dict[str, np.ndarray]) -> np.ndarray:
         """The height (m) each grid row is lifted by (module docstring, step 2): where a foot is still,
         its lowest point on the ground; between, interpolated; then smoothed, and raised where a
         body would go more than :data:`PENETRATION_M` into the ground."""
@@ -319,7 +326,7 @@ class SequenceMaker:
         lowest = np.array([float(g["vertices"][:, 1].min()) for g in grid])
         heights, speeds = [], []
         for r in FEET:
-            v = np.stack([g["vertices"][regions[r]] for g in grid]).astype(np.float64)  # (N, n, 3)
+            v = region_vertices[r]  # (N, n, 3), per grid row
             if v.shape[1] == 0:
                 continue
             low = v[:, :, 1].argmin(1)

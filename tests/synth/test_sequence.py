@@ -86,11 +86,13 @@ def clips(library, tmp_path_factory) -> Path:
 
 
 def _docs(dataset: Path) -> list[dict]:
-    out = []
-    for shard in sorted(dataset.glob("shard-*.tar")):
-        d = read_shard(shard)
-        out += [json.loads(d[k]["json"]) for k in sorted(d)]
-    return out
+    from synth.data import DatasetIndex
+
+    index = DatasetIndex(dataset)
+    try:
+        return [index.json(i) for i in range(len(index))]
+    finally:
+        index.close()
 
 
 def test_a_sequence_dataset_validates_and_carries_the_sequence_labels(clips):
