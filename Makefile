@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -25,7 +25,7 @@ test: $(STAMP)
 
 # Long: the generator part makes about 2000 images (about 40 minutes on 2 cores); the fresh-sample
 # runs (bench_generate: cold and warm kernel caches, 2 and 1 workers, the bare render beside) about
-# 6 minutes; with a GPU, the same on cuda_ad_rgb with 1-16 workers (benchmarks/gpu_generate.sh does it on
+# 6 minutes; with a GPU, the same on cuda_ad_rgb with 1-16 workers (benchmarks/figures/gpu_generate.sh does it on
 # a lent machine without Mitsuba); the recovery part needs the validation set (made if missing, about 1 minute).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_forward.py --out docs/benchmarks.md
@@ -73,12 +73,12 @@ motions: $(STAMP)
 
 # Video (docs/video.md): every camera path made, validated and drawn (out/video_check: a contact
 # sheet and an animated PNG per path), contact against the velocity rule on walking clips
-# (docs/video_check.json), then the video test set and the packaged network's temporal metrics
+# (docs/figures/video_check.json), then the video test set and the packaged network's temporal metrics
 # (about 40 minutes on 2 cores).
 video: $(STAMP)
 	test -f out/motions/summary.csv || $(MAKE) motions
 	$(MAKE) recovery-data-motions
-	$(BIN)/python benchmarks/video_check.py --out out/video_check --doc docs/video_check.json
+	$(BIN)/python benchmarks/video_check.py --out out/video_check --doc docs/figures/video_check.json
 	$(BIN)/synth generate configs/synth/video_test.yaml --out out/video_test --workers 2 --resume
 	$(BIN)/synth validate out/video_test
 	$(BIN)/recovery evaluate default out/video_test --out out/video_eval
@@ -124,13 +124,19 @@ recovery-data-after: $(STAMP)
 recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume
 	$(BIN)/recovery evaluate out/runs/hmr_blsm_lite0/best.pt out/data/test --out out/eval/hmr_blsm_lite0
-	$(BIN)/recovery export out/runs/hmr_blsm_lite0/best.pt --out recovery/data/hmr_blsm_default.pt --report out/eval/hmr_blsm_lite0/metrics.json
+	$(BIN)/recovery export out/runs/hmr_blsm_lite0/best.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_lite0/metrics.json
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
 # Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on
 # 2 cores); an interrupted run continues where it stopped.
 recovery-ablation: $(STAMP)
 	$(BIN)/recovery ablation configs/recovery/ablation --test out/data/test --out out/ablation
+
+# The equal-budget comparisons of docs/recovery.md (docs/recovery_comparison.md): ImageNet Lite0 against
+# ResNet-18 from scratch, and Lite0 without the pose discriminator, each trained (about 10-12 minutes on
+# 2 cores; a finished run is reused) and evaluated on 600 people of the test set. Needs recovery-data.
+recovery-compare: $(STAMP)
+	$(BIN)/python benchmarks/compare_recovery.py
 
 # The real-photo transfer check's set-up (docs/transfer.md): MediaPipe Pose in .venv-reference, the
 # development set of real photographs (out/transfer_dev), the backplate bank
@@ -144,10 +150,12 @@ transfer-setup: $(STAMP)
 	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
 
 # The transfer ablation of docs/transfer.md: one fine-tuning row per lever at one budget (about 2 hours
-# on 2 cores; resumable), scored on the held-out test set and the development set.
+# on 2 cores; resumable), scored on the held-out test set and the development set; then each row's paired
+# difference against the base row (docs/figures/transfer_paired.json).
 transfer-ablation: transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
 	$(BIN)/python benchmarks/transfer_ablation.py
+	$(BIN)/python benchmarks/transfer_paired.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -79,7 +79,7 @@ def run_generator(cfg, work: Path, subjects: Path, workers: int, part: tuple[int
     import signal
     import subprocess
 
-    from synth.generate import _cfg_json
+    from synth.generate import cfg_json as _cfg_json
 
     out = work / f"run_w{workers}_part{part[0]}"
     shutil.rmtree(out, ignore_errors=True)
@@ -127,7 +127,7 @@ def _bare_worker(cfg_dict: dict, dataset: str, first: int, count: int, threads: 
 
     import synth.render as render
     from synth.config import GeneratorConfig, from_dict
-    from synth.generate import SampleMaker
+    from synth.sample import SampleMaker
     from synth.shards import sample_rng
 
     torch.set_num_threads(1)
@@ -181,7 +181,8 @@ def main() -> int:
 
     import blsm
     from synth.config import load_config
-    from synth.generate import _cfg_json, choose_variant, prepare_subjects
+    from synth.generate import cfg_json as _cfg_json
+    from synth.generate import choose_variant, prepare_subjects
 
     sets = list(args.set) + ([f"render.variant={args.variant}"] if args.variant else [])
     cfg = load_config("-", sets)
@@ -237,7 +238,7 @@ def main() -> int:
         gpu = "cuda" in variant
         write_section(args.out, f"generate-{'gpu' if gpu else 'cpu'}", f"Generator on fresh samples ({'GPU' if gpu else 'CPU'})",
                       "benchmarks/bench_generate.py", _report(cfg, variant, records, args, cpus),
-                      command=None if not gpu else "`bash benchmarks/gpu_generate.sh` on a lent GPU machine (runs "
+                      command=None if not gpu else "`bash benchmarks/figures/gpu_generate.sh` on a lent GPU machine (runs "
                       f"`python benchmarks/bench_generate.py --variant {variant} --workers {' '.join(map(str, args.workers))}"
                       f"{' --no-cold' if args.no_cold else ''} ...`)")
     if args.work is None:

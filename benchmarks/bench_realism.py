@@ -3,7 +3,7 @@
     python benchmarks/bench_realism.py --out docs/realism.md [--poses 10000] [--people 10000]
 
 Writes two sections of ``--out`` (between ``<!-- bench:... -->`` markers) and
-``docs/realism_ages.png``:
+``docs/figures/realism_ages.png`` (``figures/`` beside ``--out``):
 
 - **poses**: ``--poses`` prior draws through the generator's own ``PoseSource`` (seed 0), with and
   without ``poses.plausible``: feet pointing backwards relative to the pelvis (the leg
@@ -47,7 +47,7 @@ def poses_section(n: int) -> str:
     import blsm
     from blsm.mocap.plausible import PoseChecker
     from synth.config import GeneratorConfig, PosesConfig
-    from synth.generate import PoseSource
+    from synth.sample import PoseSource
 
     checker = PoseChecker(blsm.load())
     rows = []
@@ -64,7 +64,7 @@ def poses_section(n: int) -> str:
         r = checker.check(torch.from_numpy(np.stack(xs)))
         rows.append((plausible, r, redraws, dt))
     lines = [
-        f"{n} prior poses drawn by `synth.generate.PoseSource` (seed 0, the packaged CMU prior), checked on the",
+        f"{n} prior poses drawn by `synth.sample.PoseSource` (seed 0, the packaged CMU prior), checked on the",
         "mean body by `blsm.mocap.plausible`:",
         "",
         "| `poses.plausible` | feet backwards, leg straightened (L / R) | toes behind heel as posed (L / R) | limb through torso | re-draws | rejection rate | ms per pose |",
@@ -79,7 +79,8 @@ def poses_section(n: int) -> str:
     return "\n".join(lines)
 
 
-def ages_section(n: int, png: Path) -> str:
+def ages_section(n: int, png: Path, link: str) -> str:
+    """The ages section; its histogram written to ``png``, linked from the markdown as ``link``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -97,10 +98,11 @@ def ages_section(n: int, png: Path) -> str:
     ax.set_ylabel(f"people of {n}")
     ax.legend(fontsize=8)
     fig.tight_layout()
+    png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=110)
     plt.close(fig)
     head = "| ages | " + " | ".join(f"{lo}-{hi}" for lo, hi in zip(bins[:-1], bins[1:])) + " |"
-    lines = [f"Ages of {n} people per population (`sample_phenotype`, seeds 0..{n - 1}); ![ages]({png.name})", "", head,
+    lines = [f"Ages of {n} people per population (`sample_phenotype`, seeds 0..{n - 1}); ![ages]({link})", "", head,
              "| --- |" + " ---: |" * (len(bins) - 1)]
     for k, a in ages.items():
         counts = np.histogram(a, bins=bins)[0]
@@ -109,9 +111,9 @@ def ages_section(n: int, png: Path) -> str:
 
 
 def time_scenes(maker, seed: int, scenes: int) -> tuple[list[dict], float]:
-    """Samples 1..``scenes`` of ``maker`` (a ``synth.generate.SampleMaker``) and the seconds per
+    """Samples 1..``scenes`` of ``maker`` (a ``synth.sample.SampleMaker``) and the seconds per
     sample spent making them, after a warm-up sample (kernels compile once) and rigging every subject
-    (per-subject work, the render mesh and hair, is made once). benchmarks/time_images.py times an
+    (per-subject work, the render mesh and hair, is made once). benchmarks/figures/time_images.py times an
     older checkout with it too."""
     from synth.shards import sample_rng
 
@@ -126,12 +128,13 @@ def time_scenes(maker, seed: int, scenes: int) -> tuple[list[dict], float]:
 def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_spp: int, rounds: int) -> str:
     import dataclasses
 
+    import blsm
     from blsm.mitsuba_util import resolve_variant
     from synth import format as fmt
     from synth.config import load_config
     from synth.denoise import psnr
-    import blsm
-    from synth.generate import SampleMaker, prepare_subjects
+    from synth.generate import prepare_subjects
+    from synth.sample import SampleMaker
 
     base = load_config(config)
     work.mkdir(parents=True, exist_ok=True)
@@ -225,8 +228,9 @@ def main() -> None:
         _replace_section(out, "realism-poses", poses_section(args.poses))
         print(f"poses: {out}")
     if "ages" not in args.skip:
-        _replace_section(out, "realism-ages", ages_section(args.people, out.parent / "realism_ages.png"))
-        print(f"ages: {out}, {out.parent / 'realism_ages.png'}")
+        png = out.parent / "figures" / "realism_ages.png"
+        _replace_section(out, "realism-ages", ages_section(args.people, png, "figures/realism_ages.png"))
+        print(f"ages: {out}, {png}")
 
 
 if __name__ == "__main__":

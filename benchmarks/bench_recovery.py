@@ -2,7 +2,7 @@
 inference images/s; written to the ``recovery`` section of ``docs/benchmarks.md``.
 
 The real loader is what ``recovery train`` uses: the pre-cropped cache (memory-mapped uint8 crops),
-:class:`recovery.data.BatchAugment` (affine warp of image, mask and parts, colour jitter, label
+:class:`recovery.datasets.augment.BatchAugment` (affine warp of image, mask and parts, colour jitter, label
 transforms) in ``workers`` DataLoader processes. The in-memory condition feeds the same number of
 steps from batches augmented beforehand and held in memory, so only the network's step is timed.
 The two conditions alternate in rounds so that machine load affects both alike; the ratio is real
@@ -30,7 +30,8 @@ sys.path.insert(0, str(Path(__file__).parent))
 from report import write_section  # noqa: E402
 
 from recovery.config import DataConfig, ModelConfig, RecoveryConfig, TrainConfig  # noqa: E402
-from recovery.train import loaders, setup  # noqa: E402
+from recovery.datasets.loaders import loaders  # noqa: E402
+from recovery.train import setup  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -41,7 +41,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from report import write_section  # benchmarks/report.py (run as a script)
 
 
@@ -91,9 +90,10 @@ def main() -> int:
     import torch
 
     import blsm
-    from synth.config import GeneratorConfig, OutputConfig, RenderConfig, SubjectsConfig
-    from synth.generate import SampleMaker, choose_variant, generate, prepare_subjects
+    from synth.config import GeneratorConfig, OutputConfig, SubjectsConfig
+    from synth.generate import choose_variant, generate, prepare_subjects
     from synth.render import PeopleRenderer
+    from synth.sample import SampleMaker
     from synth.shards import sample_rng
 
     base = GeneratorConfig()

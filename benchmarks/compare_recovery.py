@@ -3,7 +3,8 @@ scratch, and Lite0 with against without the 47-D pose discriminator.
 
 Each config of ``configs/recovery/compare_*.yaml`` is trained (resumable: a finished run is reused),
 its final checkpoint (``last.pt``, the end of its cosine schedule; no selection) evaluated on the
-held-out test set, and the table written to ``docs/recovery_comparison.md`` and ``.json``: wall time,
+held-out test set, and the table written to ``docs/recovery_comparison.md`` (its JSON to
+``docs/figures/recovery_comparison.json``; ``make recovery-compare``): wall time,
 PA-MPJPE, MPJPE, PVE and the fraction of predicted poses whose pose-prior log-probability lies below
 the 1st percentile of the real mocap frames' (the test labels).
 
@@ -58,7 +59,8 @@ def main(argv: list[str] | None = None) -> int:
             "val_curve": [(r["step"], r["pa_mpjpe_mm"]) for r in logs if r["kind"] == "val"],
         }
     out = ROOT / args.out
-    out.with_suffix(".json").write_text(json.dumps(results, indent=1))
+    (out.parent / "figures").mkdir(parents=True, exist_ok=True)
+    (out.parent / "figures" / f"{out.name}.json").write_text(json.dumps(results, indent=1))
     lines = [
         "# HMR-BLSM comparisons at an equal budget",
         "",

@@ -12,7 +12,7 @@ when missing), then scores the run's ``last.pt``:
   MediaPipe Pose, with the same synthetic test set: the transfer ratio.
 
 The row ``packaged`` scores the packaged checkpoint itself (no fine-tuning). Every step is resumable
-(a finished step is skipped), so an interrupted run continues. Results go to ``docs/transfer.json``
+(a finished step is skipped), so an interrupted run continues. Results go to ``docs/figures/transfer.json``
 and the table between the markers of ``docs/transfer.md``.
 """
 
@@ -118,7 +118,8 @@ def main() -> int:
         r = results[-1]
         print(f"[transfer] {name}: PA-MPJPE {r['pa_mpjpe_mm']:.1f} mm, transfer ratio {r['transfer']['transfer_ratio@0.1']:.2f}", flush=True)
     docs = ROOT / args.docs
-    (docs / "transfer.json").write_text(json.dumps(results, indent=1))
+    (docs / "figures").mkdir(parents=True, exist_ok=True)
+    (docs / "figures" / "transfer.json").write_text(json.dumps(results, indent=1))
     md = docs / "transfer.md"
     text = md.read_text() if md.is_file() else f"{BEGIN}\n{END}\n"
     if BEGIN in text and END in text:

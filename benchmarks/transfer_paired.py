@@ -2,7 +2,8 @@
 its gain over the floor minus the reference row's, on the same people, with a 90 % bootstrap
 interval over people (photographs and synthetic images apart), and its transfer ratio's change.
 
-    python benchmarks/transfer_paired.py [--reference base] [--rows ...] [--json docs/transfer_paired.json]
+    python benchmarks/transfer_paired.py [--reference base] [--rows ...]
+        [--json docs/figures/transfer_paired.json]
 
 Reads the checkpoints of out/transfer/runs/ROW/last.pt (``packaged``: the packaged one) and the
 reference answers cached by ``recovery transfer`` in out/transfer/check/base/reference.json.
@@ -21,7 +22,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from recovery import transfer as T  # noqa: E402
+from recovery.eval import transfer as T  # noqa: E402
 from recovery.predictor import load_predictor  # noqa: E402
 
 
@@ -33,7 +34,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", default="base")
     ap.add_argument("--rows", nargs="+", default=["packaged", "effects", "truncation", "recipe", "plates", "combined"])
-    ap.add_argument("--json", default=str(ROOT / "docs/transfer_paired.json"))
+    ap.add_argument("--json", default=str(ROOT / "docs/figures/transfer_paired.json"))
     ap.add_argument("--boot", type=int, default=2000)
     args = ap.parse_args()
     torch.set_num_threads(2)

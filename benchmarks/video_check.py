@@ -12,7 +12,7 @@ validated and drawn; contact against the field's velocity rule on walking clips.
    agreement, and where they differ, the cases (near the ground but moving: the heel strike and
    toe-off; still but above the ground).
 
-    python benchmarks/video_check.py [--out out/video_check] [--doc docs/video_check.json]
+    python benchmarks/video_check.py [--out out/video_check] [--doc docs/figures/video_check.json]
 """
 
 from __future__ import annotations

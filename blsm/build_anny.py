@@ -20,13 +20,12 @@ steps follow paper 000 Sec. 4 (thesis Sec. 5.4) where Anny makes them simpler:
 
 from __future__ import annotations
 
-import argparse
 import datetime
 import json
 import math
 import sys
 import time
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -184,22 +183,40 @@ def _scaled_chain(b: np.ndarray, heads: np.ndarray, frames: np.ndarray):
     return lin, off
 
 
-def build(
-    n_bodies: int = 600,
-    seed: int = 0,
-    half_faces: int = 7000,
-    num_bone_coeffs: int = 10,
-    num_shape_coeffs: int = 16,
-    ridge: float = 1e-3,
-) -> tuple[io.ModelData, dict]:
-    """Build the BLSM model data from an Anny population. See the module docstring."""
+LEAF_TIP = {"head": "head_top", "wrist_l": "hand_tip_l", "wrist_r": "hand_tip_r", "ankle_l": "toe_tip_l",
+            "ankle_r": "toe_tip_r"}
+"""Surface keypoint that ends each leaf bone."""
+
+_FLIP = np.array([-1.0, 1.0, 1.0])
+
+
+@dataclass
+class _AnnyPopulation:
+    """Anny bodies in BLSM axes, symmetrised, each relative to its root joint (moved to the mean root).
+
+    Attributes:
+        verts: (N, Va, 3) rest vertices, metres. faces: (Fa, 3) Anny's triangles.
+        joints: (N, J, 3) BLSM joints (the head of each BLSM bone's first Anny bone).
+        coco: (N, 5, 3) Anny's COCO face keypoints.
+        bone_weights: (Va, J) Anny's skinning weights summed per BLSM bone.
+        version: the ``anny`` package version.
+    """
+
+    verts: np.ndarray
+    faces: np.ndarray
+    joints: np.ndarray
+    coco: np.ndarray
+    bone_weights: np.ndarray
+    version: str
+
+
+def _anny_population(n_bodies: int, seed: int) -> _AnnyPopulation:
+    """``n_bodies`` Anny phenotypes drawn uniformly with ``seed``."""
     import anny
-    import xatlas
     from anny.skinning.skinning import apply_linear_blendshape
     from anny.utils.mesh_utils import get_symmetric_vertex_indices
 
     t0 = time.time()
-    dofs = load_dof_table(DEFAULT_DOF_TABLE)
     model = anny.Anny(topology="anny-noeyes-notongue")
     full = anny.Anny(topology="anny")  # with eyes, for Anny's COCO face keypoints
     _log(f"Anny {anny.__version__} loaded in {time.time() - t0:.0f} s")
@@ -216,15 +233,13 @@ def build(
         full_verts = full.get_rest_vertices(coeffs_full)
         regressor = anny.KeypointsRegressor.coco(full, labels=[n for n in COCO17 if n in FACE_COCO])
         coco = regressor(dict(vertices=full_verts)).numpy() @ ANNY_TO_WORLD.T  # (N, 5, 3)
-    faces_a = model.faces.numpy()
     labels = list(model.bone_labels)
 
     # Symmetrise every body (Anny's vertex mirror map, bone names mirrored).
     sym = get_symmetric_vertex_indices(model.template_vertices, axis=0, threshold=1e-4).numpy()
-    flip = np.array([-1.0, 1.0, 1.0])
-    verts = 0.5 * (verts + verts[:, sym] * flip)
+    verts = 0.5 * (verts + verts[:, sym] * _FLIP)
     bone_sym = [labels.index(lab.replace(".L", ".X").replace(".R", ".L").replace(".X", ".R")) for lab in labels]
-    heads = 0.5 * (heads + heads[:, bone_sym] * flip)
+    heads = 0.5 * (heads + heads[:, bone_sym] * _FLIP)
 
     groups = anny_bone_groups(labels)
     joints = heads[:, [g[0] for g in groups]]  # (N, J, 3)
@@ -232,34 +247,35 @@ def build(
     # the root fixed while bones scale; otherwise the correctives would have to carry the body's
     # translation (a child's pelvis is lower than an adult's).
     shift = joints[:, :1] - joints[:, :1].mean(0, keepdims=True)  # (N, 1, 3)
-    verts = verts - shift
-    joints = joints - shift
-    coco = coco - shift
-    mean_verts = verts.mean(0)
 
-    # 1. Template topology.
-    dec_v, dec_f, mirror = symmetric_half_decimation(mean_verts, faces_a, half_faces)
-    tri, bary = barycentric_embedding(mean_verts, faces_a, dec_v)
-    bodies = barycentric_interpolate(verts, faces_a, tri, bary)  # (N, V, 3)
-    bodies = 0.5 * (bodies + bodies[:, mirror] * flip)
-    template = bodies.mean(0)
-    _log(f"template: {len(dec_v)} vertices, {len(dec_f)} faces (from {len(mean_verts)})")
-
-    # 2. Weights: Anny's sparse weights summed per BLSM bone, then transferred.
-    wa = np.zeros((len(mean_verts), len(labels)))
-    np.add.at(wa, (np.arange(len(mean_verts))[:, None], model.vertex_bone_indices.numpy()), model.vertex_bone_weights.numpy())
+    # Anny's sparse weights summed per BLSM bone.
+    n_va = verts.shape[1]
+    wa = np.zeros((n_va, len(labels)))
+    rows = np.arange(n_va)[:, None]
+    np.add.at(wa, (rows, model.vertex_bone_indices.numpy()), model.vertex_bone_weights.numpy())
     wb = np.stack([wa[:, g].sum(1) for g in groups], axis=1)  # (Va, J)
-    weights = barycentric_interpolate(wb, faces_a, tri, bary)
+    faces = model.faces.numpy()
+    return _AnnyPopulation(verts - shift, faces, joints - shift, coco - shift, wb, anny.__version__)
+
+
+def _transfer_weights(
+    pop: _AnnyPopulation, tri: np.ndarray, bary: np.ndarray, mirror: np.ndarray
+) -> np.ndarray:
+    """(V, J) the per-bone Anny weights carried onto the template, symmetric, pruned below 1e-4."""
+    weights = barycentric_interpolate(pop.bone_weights, pop.faces, tri, bary)
     bone_mirror = [skeleton.BONE_NAMES.index(skeleton.mirror_name(n)) for n in skeleton.BONE_NAMES]
     weights = 0.5 * (weights + weights[mirror][:, bone_mirror])
     weights = np.clip(weights, 0.0, None)
     weights[weights < 1e-4] = 0.0
     weights /= weights.sum(1, keepdims=True)
-    vertex_bones = weights.argmax(1)
+    return weights
 
-    # Leaf tips on the template (head top, middle fingertip, toe tip, heel).
+
+def _leaf_tips(template: np.ndarray, vertex_bones: np.ndarray, joints: np.ndarray,
+               mirror: np.ndarray) -> dict[str, int]:
+    """Template vertices of the head top, middle fingertip, toe tip and heel (left, mirrored right);
+    ``joints`` (J, 3) are the mean joints."""
     bi = skeleton.BONE_NAMES.index
-    jm = joints.mean(0)
 
     def region(bone: str) -> np.ndarray:
         return np.flatnonzero(vertex_bones == bi(bone))
@@ -267,91 +283,50 @@ def build(
     head_region = region("head")
     tips = {"head_top": head_region[np.argmax(template[head_region, 1])]}
     hand = region("wrist_l")
-    tips["hand_tip_l"] = hand[np.argmax(np.linalg.norm(template[hand] - jm[bi("wrist_l")], axis=1))]
+    tips["hand_tip_l"] = hand[np.argmax(np.linalg.norm(template[hand] - joints[bi("wrist_l")], axis=1))]
     foot = region("ankle_l")
     tips["toe_tip_l"] = foot[np.argmax(template[foot, 2])]
     low = foot[template[foot, 1] < template[foot, 1].min() + 0.02]
     tips["heel_l"] = low[np.argmin(template[low, 2])]
     for k in ("hand_tip", "toe_tip", "heel"):
         tips[f"{k}_r"] = mirror[tips[f"{k}_l"]]
+    return tips
 
-    leaf_tip = {"head": "head_top", "wrist_l": "hand_tip_l", "wrist_r": "hand_tip_r", "ankle_l": "toe_tip_l", "ankle_r": "toe_tip_r"}
-    children = {j: [c for c, p in enumerate(skeleton.BONE_PARENTS) if p == j] for j in range(len(skeleton.BONE_NAMES))}
 
-    def bone_lengths(jnt: np.ndarray, verts_: np.ndarray) -> np.ndarray:
-        """RMS distance from each head to its children's heads (or to the leaf tip): (N, J)."""
-        out = []
-        for j, name in enumerate(skeleton.BONE_NAMES):
-            if children[j]:
-                d = jnt[:, children[j]] - jnt[:, j : j + 1]
-            else:
-                d = verts_[:, tips[leaf_tip[name]]][:, None] - jnt[:, j : j + 1]
-            out.append(np.sqrt((d**2).sum(-1).mean(-1)))
-        return np.stack(out, axis=1)
-
-    # 3. Bone-length PCA (Sec. 4.2).
-    lengths = bone_lengths(joints, bodies)
-    mean_len = lengths.mean(0)
-    rel = lengths / mean_len - 1.0  # b - b_mean with b_mean = 1
-    _, sv, vt = np.linalg.svd(rel, full_matrices=False)
-    var = sv**2 / (n_bodies - 1)
-    explained = var / var.sum()
-    bone_basis = vt[:num_bone_coeffs] * np.sqrt(var[:num_bone_coeffs, None])  # (Kb, J)
-    c_b = rel @ vt[:num_bone_coeffs].T / np.sqrt(var[:num_bone_coeffs])  # (N, Kb)
-    _log(f"bone PCA: first 3 components explain {100 * explained[:3].sum():.2f} % of bone-length variance")
-
-    # Skeleton of the template: the mean joints; frames from heads and tails.
-    heads_t = jm
-    tails_t = np.zeros_like(heads_t)
+def _bone_lengths(joints: np.ndarray, verts: np.ndarray, tips: dict[str, int]) -> np.ndarray:
+    """RMS distance from each head to its children's heads (or to the leaf tip): (N, J)."""
+    out = []
     for j, name in enumerate(skeleton.BONE_NAMES):
-        if name in leaf_tip:
-            tails_t[j] = template[tips[leaf_tip[name]]]
+        children = [c for c, p in enumerate(skeleton.BONE_PARENTS) if p == j]
+        if children:
+            d = joints[:, children] - joints[:, j : j + 1]
         else:
-            tails_t[j] = heads_t[bi(skeleton.PRIMARY_CHILD[name])]
-    frames = skeleton.bind_frames(heads_t, tails_t)
+            d = verts[:, tips[LEAF_TIP[name]]][:, None] - joints[:, j : j + 1]
+        out.append(np.sqrt((d**2).sum(-1).mean(-1)))
+    return np.stack(out, axis=1)
 
-    # 4. Un-skin every body at zero pose with its bone scales, then regress and PCA.
-    b = 1.0 + c_b @ bone_basis  # (N, J)
-    parents = np.array(skeleton.BONE_PARENTS)
-    lin, off = (t.numpy() for t in _scaled_chain(b, heads_t, frames))
-    f64 = torch.float64
-    transforms = torch.as_tensor(np.concatenate([lin, off[..., None]], axis=-1), dtype=f64)
-    unposed = unskin(torch.as_tensor(bodies, dtype=f64), torch.as_tensor(weights, dtype=f64), transforms).numpy()
-    delta = (unposed - template).reshape(n_bodies, -1)
-    gram = c_b.T @ c_b + ridge * n_bodies * np.eye(num_bone_coeffs)
-    correctives = np.linalg.solve(gram, c_b.T @ delta)  # (Kb, 3V)
-    resid = delta - c_b @ correctives
-    _, ssv, svt = np.linalg.svd(resid - resid.mean(0), full_matrices=False)
-    svar = ssv**2 / (n_bodies - 1)
-    shape_basis = svt[:num_shape_coeffs] * np.sqrt(svar[:num_shape_coeffs, None])
-    c_s = (resid - resid.mean(0)) @ svt[:num_shape_coeffs].T / np.sqrt(svar[:num_shape_coeffs])
-    shape_explained = svar / svar.sum()
-    template = template + resid.mean(0).reshape(-1, 3)
 
-    # Symmetrise the bases exactly (the data are symmetric up to round-off).
-    def sym_basis(basis: np.ndarray) -> np.ndarray:
-        bb = basis.reshape(len(basis), -1, 3)
-        return (0.5 * (bb + bb[:, mirror] * flip)).reshape(basis.shape)
+def _bind_skeleton(
+    heads: np.ndarray, template: np.ndarray, tips: dict[str, int]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tails (J, 3) of the bones with heads ``heads`` (a child's head or a leaf tip) and the bind
+    frames (J, 3, 3) from heads and tails."""
+    tails = np.zeros_like(heads)
+    for j, name in enumerate(skeleton.BONE_NAMES):
+        if name in LEAF_TIP:
+            tails[j] = template[tips[LEAF_TIP[name]]]
+        else:
+            tails[j] = heads[skeleton.BONE_NAMES.index(skeleton.PRIMARY_CHILD[name])]
+    return tails, skeleton.bind_frames(heads, tails)
 
-    correctives = sym_basis(correctives)
-    shape_basis = sym_basis(shape_basis)
-    bone_basis = 0.5 * (bone_basis + bone_basis[:, bone_mirror])
-    template = 0.5 * (template + template[mirror] * flip)
 
-    # Reconstruction error of the population with the fitted coefficients (zero pose).
-    recon_rest = template + (c_b @ correctives + c_s @ shape_basis).reshape(n_bodies, -1, 3)
-    lin2, off2 = _scaled_chain(1.0 + c_b @ bone_basis, heads_t, frames)
-    recon = linear_blend_skinning(torch.as_tensor(recon_rest), torch.as_tensor(weights), lin2, off2).numpy()
-    v2v = np.linalg.norm(recon - bodies, axis=-1).mean() * 1000.0
-    _log(f"population reconstruction (zero pose, {num_bone_coeffs}+{num_shape_coeffs} coeffs): {v2v:.2f} mm mean vertex error")
+def _keypoints(template: np.ndarray, faces: np.ndarray, tips: dict[str, int], coco_mean: np.ndarray):
+    """Keypoints: BLSM joints, tips, COCO-17 (face ones from Anny's regressor, body ones = joints).
 
-    # UVs (the decimation drops Anny's; xatlas makes an atlas on the template).
-    vmap, faces_uv, uvs = xatlas.parametrize(template.astype(np.float32), dec_f.astype(np.uint32))
-    if not np.array_equal(vmap[faces_uv], dec_f):
-        raise RuntimeError("xatlas changed the face order or corners")
-
-    # Keypoints: BLSM joints, tips, COCO-17 (face ones from Anny's regressor, body ones = joints).
-    coco_mean = coco.mean(0)
+    Returns:
+        (names, joint index (K,) or -1, surface vertices (K, 3), barycentric weights (K, 3)).
+    """
+    bi = skeleton.BONE_NAMES.index
     kp_names: list[str] = list(skeleton.BONE_NAMES) + list(EXTRA_SURFACE) + list(COCO17)
     kp_joint = np.full(len(kp_names), -1)
     kp_vert = np.zeros((len(kp_names), 3), dtype=np.int64)
@@ -368,23 +343,122 @@ def build(
                 kp_joint[k] = bi(f"{COCO_JOINT[part]}_{side[0]}")
             else:
                 src = coco_mean[FACE_COCO.index(name)]
-                ftri, fb = barycentric_embedding(template, dec_f, src[None])
-                kp_vert[k] = dec_f[ftri[0]]
+                ftri, fb = barycentric_embedding(template, faces, src[None])
+                kp_vert[k] = faces[ftri[0]]
                 kp_w[k] = fb[0]
-    keypoint_sets = {
-        "coco17": list(COCO17),
-        "blsm_joints": list(skeleton.BONE_NAMES),
-    }
+    return kp_names, kp_joint, kp_vert, kp_w
 
+
+def _rest_flexion(heads: np.ndarray, tails: np.ndarray, frames: np.ndarray) -> dict[str, float]:
+    """Signed rest flexion (degrees) of the left knee and elbow about the joint's x axis, from the
+    parent's direction."""
     rest = {}
     for name in ("knee_l", "elbow_l"):
-        j = bi(name)
-        p = parents[j]
-        up = heads_t[j] - heads_t[p]
-        down = tails_t[j] - heads_t[j]
-        # Signed flexion about the joint's x axis from the parent's direction.
+        j = skeleton.BONE_NAMES.index(name)
+        p = skeleton.BONE_PARENTS[j]
+        up = heads[j] - heads[p]
+        down = tails[j] - heads[j]
         ang = math.atan2(np.dot(np.cross(up, down), frames[j][:, 0]), np.dot(up, down))
         rest[name] = math.degrees(ang)
+    return rest
+
+
+def _symmetric_basis(basis: np.ndarray, mirror: np.ndarray) -> np.ndarray:
+    """(K, 3V) vertex offsets averaged with their mirror images (exactly symmetric)."""
+    bb = basis.reshape(len(basis), -1, 3)
+    return (0.5 * (bb + bb[:, mirror] * _FLIP)).reshape(basis.shape)
+
+
+def _blendshapes(bodies: np.ndarray, template: np.ndarray, weights: np.ndarray, c_b: np.ndarray,
+                 bone_basis: np.ndarray, heads: np.ndarray, frames: np.ndarray, num_shape_coeffs: int,
+                 ridge: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 4: un-skin every body at zero pose with its bone scales, then the ridge regression of the
+    offsets on c_b (the correctives, Eq. 7) and the PCA of what remains (the shape basis, Eq. 8).
+
+    Returns:
+        (correctives (Kb, 3V), shape basis (Ks, 3V), c_s (N, Ks), shape explained variance, the
+        template with the residual mean added), not yet symmetrised.
+    """
+    n_bodies, num_bone_coeffs = c_b.shape
+    b = 1.0 + c_b @ bone_basis  # (N, J)
+    lin, off = (t.numpy() for t in _scaled_chain(b, heads, frames))
+    f64 = torch.float64
+    transforms = torch.as_tensor(np.concatenate([lin, off[..., None]], axis=-1), dtype=f64)
+    unposed = unskin(torch.as_tensor(bodies, dtype=f64), torch.as_tensor(weights, dtype=f64), transforms).numpy()
+    delta = (unposed - template).reshape(n_bodies, -1)
+    gram = c_b.T @ c_b + ridge * n_bodies * np.eye(num_bone_coeffs)
+    correctives = np.linalg.solve(gram, c_b.T @ delta)  # (Kb, 3V)
+    resid = delta - c_b @ correctives
+    _, ssv, svt = np.linalg.svd(resid - resid.mean(0), full_matrices=False)
+    svar = ssv**2 / (n_bodies - 1)
+    shape_basis = svt[:num_shape_coeffs] * np.sqrt(svar[:num_shape_coeffs, None])
+    c_s = (resid - resid.mean(0)) @ svt[:num_shape_coeffs].T / np.sqrt(svar[:num_shape_coeffs])
+    return correctives, shape_basis, c_s, svar / svar.sum(), template + resid.mean(0).reshape(-1, 3)
+
+
+def build(
+    n_bodies: int = 600,
+    seed: int = 0,
+    half_faces: int = 7000,
+    num_bone_coeffs: int = 10,
+    num_shape_coeffs: int = 16,
+    ridge: float = 1e-3,
+) -> tuple[io.ModelData, dict]:
+    """Build the BLSM model data from an Anny population. See the module docstring."""
+    import xatlas
+
+    t0 = time.time()
+    dofs = load_dof_table(DEFAULT_DOF_TABLE)
+    pop = _anny_population(n_bodies, seed)
+    mean_verts = pop.verts.mean(0)
+
+    # 1. Template topology.
+    dec_v, dec_f, mirror = symmetric_half_decimation(mean_verts, pop.faces, half_faces)
+    tri, bary = barycentric_embedding(mean_verts, pop.faces, dec_v)
+    bodies = barycentric_interpolate(pop.verts, pop.faces, tri, bary)  # (N, V, 3)
+    bodies = 0.5 * (bodies + bodies[:, mirror] * _FLIP)
+    template = bodies.mean(0)
+    _log(f"template: {len(dec_v)} vertices, {len(dec_f)} faces (from {len(mean_verts)})")
+
+    # 2. Weights: Anny's sparse weights summed per BLSM bone, then transferred.
+    weights = _transfer_weights(pop, tri, bary, mirror)
+    vertex_bones = weights.argmax(1)
+    jm = pop.joints.mean(0)
+    tips = _leaf_tips(template, vertex_bones, jm, mirror)
+
+    # 3. Bone-length PCA (Sec. 4.2).
+    lengths = _bone_lengths(pop.joints, bodies, tips)
+    mean_len, explained, bone_basis, c_b = _bone_pca(lengths, num_bone_coeffs)
+    _log(f"bone PCA: first 3 components explain {100 * explained[:3].sum():.2f} % of bone-length variance")
+
+    # Skeleton of the template: the mean joints; frames from heads and tails.
+    heads_t = jm
+    tails_t, frames = _bind_skeleton(heads_t, template, tips)
+
+    # 4. Un-skin every body at zero pose with its bone scales, then regress and PCA; the bases are
+    # symmetrised exactly (the data are symmetric up to round-off).
+    correctives, shape_basis, c_s, shape_explained, template = _blendshapes(
+        bodies, template, weights, c_b, bone_basis, heads_t, frames, num_shape_coeffs, ridge
+    )
+    correctives = _symmetric_basis(correctives, mirror)
+    shape_basis = _symmetric_basis(shape_basis, mirror)
+    bone_mirror = [skeleton.BONE_NAMES.index(skeleton.mirror_name(n)) for n in skeleton.BONE_NAMES]
+    bone_basis = 0.5 * (bone_basis + bone_basis[:, bone_mirror])
+    template = 0.5 * (template + template[mirror] * _FLIP)
+
+    # Reconstruction error of the population with the fitted coefficients (zero pose).
+    recon_rest = template + (c_b @ correctives + c_s @ shape_basis).reshape(n_bodies, -1, 3)
+    v2v = _population_error(bodies, recon_rest, weights, 1.0 + c_b @ bone_basis, heads_t, frames)
+    _log(f"population reconstruction (zero pose, {num_bone_coeffs}+{num_shape_coeffs} coeffs): "
+         f"{v2v:.2f} mm mean vertex error")
+
+    # UVs (the decimation drops Anny's; xatlas makes an atlas on the template).
+    vmap, faces_uv, uvs = xatlas.parametrize(template.astype(np.float32), dec_f.astype(np.uint32))
+    if not np.array_equal(vmap[faces_uv], dec_f):
+        raise RuntimeError("xatlas changed the face order or corners")
+
+    kp_names, kp_joint, kp_vert, kp_w = _keypoints(template, dec_f, tips, pop.coco.mean(0))
+    rest = _rest_flexion(heads_t, tails_t, frames)
     _log(f"rest flexion (about +x, degrees): {json.dumps({k: round(v, 1) for k, v in rest.items()})}")
 
     arrays = {
@@ -395,7 +469,7 @@ def build(
         "weights": weights.astype(np.float32),
         "heads": heads_t.astype(np.float64),
         "frames": frames.astype(np.float64),
-        "bone_mean": np.ones(len(parents), dtype=np.float32),
+        "bone_mean": np.ones(len(skeleton.BONE_PARENTS), dtype=np.float32),
         "bone_basis": bone_basis.astype(np.float32),
         "bone_correctives": correctives.reshape(num_bone_coeffs, -1, 3).astype(np.float32),
         "shape_basis": shape_basis.reshape(num_shape_coeffs, -1, 3).astype(np.float32),
@@ -415,26 +489,55 @@ def build(
         "bone_pca_explained": [float(x) for x in explained[:num_bone_coeffs]],
         "shape_pca_explained": [float(x) for x in shape_explained[:num_shape_coeffs]],
         "population_vertex_error_mm": float(v2v),
-        "mean_bone_lengths_m": {n: float(x) for n, x in zip(skeleton.BONE_NAMES, mean_len)},
+        "mean_bone_lengths_m": {n: float(x) for n, x in zip(skeleton.BONE_NAMES, mean_len, strict=True)},
         "rest_flexion_deg": rest,
         "source_vertices": int(len(mean_verts)),
         "seconds": round(time.time() - t0, 1),
     }
-    meta = {
+    meta = _meta(pop.version, f"blsm build-anny --bodies {n_bodies} --seed {seed}", kp_names, report)
+    return io.ModelData(arrays=arrays, meta=meta, dof_table_yaml=dofs.source), report
+
+
+def _bone_pca(lengths: np.ndarray, num_coeffs: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 3: PCA of bone lengths (N, J) relative to their mean, so ``b_mean = 1``.
+
+    Returns:
+        (mean lengths (J,) metres, explained variance fractions, basis (Kb, J) per standard
+        deviation, coefficients (N, Kb) of the bodies in standard deviations).
+    """
+    mean_len = lengths.mean(0)
+    rel = lengths / mean_len - 1.0  # b - b_mean with b_mean = 1
+    _, sv, vt = np.linalg.svd(rel, full_matrices=False)
+    var = sv**2 / (len(lengths) - 1)
+    bone_basis = vt[:num_coeffs] * np.sqrt(var[:num_coeffs, None])  # (Kb, J)
+    c_b = rel @ vt[:num_coeffs].T / np.sqrt(var[:num_coeffs])  # (N, Kb)
+    return mean_len, var / var.sum(), bone_basis, c_b
+
+
+def _population_error(bodies: np.ndarray, rest: np.ndarray, weights: np.ndarray, b: np.ndarray,
+                      heads: np.ndarray, frames: np.ndarray) -> float:
+    """Mean vertex error (mm) of the bodies (N, V, 3) rebuilt at zero pose from their T-pose
+    meshes ``rest`` (N, V, 3) with bone scales ``b`` (N, J)."""
+    lin, off = _scaled_chain(b, heads, frames)
+    recon = linear_blend_skinning(torch.as_tensor(rest), torch.as_tensor(weights), lin, off).numpy()
+    return np.linalg.norm(recon - bodies, axis=-1).mean() * 1000.0
+
+
+def _meta(anny_version: str, command: str, keypoint_names: list[str], report: dict) -> dict[str, Any]:
+    """The model file's metadata: names, parents, keypoint sets and the build provenance."""
+    return {
         "name": "blsm-anny",
         "version": 1,
         "built": datetime.date.today().isoformat(),
-        "source": f"anny {anny.__version__} (Apache-2.0 code, CC0 MakeHuman assets)",
-        "build_command": f"blsm build-anny --bodies {n_bodies} --seed {seed}",
+        "source": f"anny {anny_version} (Apache-2.0 code, CC0 MakeHuman assets)",
+        "build_command": command,
         "bone_names": list(skeleton.BONE_NAMES),
         "parents": list(skeleton.BONE_PARENTS),
         "part_names": list(skeleton.PART_NAMES),
-        "keypoint_names": kp_names,
-        "keypoint_sets": keypoint_sets,
+        "keypoint_names": keypoint_names,
+        "keypoint_sets": {"coco17": list(COCO17), "blsm_joints": list(skeleton.BONE_NAMES)},
         "build_report": report,
     }
-    data = io.ModelData(arrays=arrays, meta=meta, dof_table_yaml=dofs.source)
-    return data, report
 
 
 def anny_mean_body(am: Any, n_bodies: int = 600, seed: int = 0) -> np.ndarray:
@@ -464,25 +567,3 @@ def rig_of(data: io.ModelData) -> io.ModelData:
     meta = {**data.meta, "name": "blsm-rig",
             "build_report": {"rig_of": f"{data.meta.get('name', '?')} ({data.meta.get('build_command', '?')})"}}
     return io.ModelData(arrays=a, meta=meta, dof_table_yaml=data.dof_table_yaml)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="blsm build-anny", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, required=True, help="model file to write (.npz)")
-    parser.add_argument("--bodies", type=int, default=600)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--rig", action="store_true",
-                        help="write only the rig (template, skeleton, weights; no blendshapes): the "
-                             "starting point of `blsm train` (blsm/data/blsm_anny_rig.npz)")
-    args = parser.parse_args(argv)
-    data, report = build(n_bodies=args.bodies, seed=args.seed)
-    if args.rig:
-        data = rig_of(data)
-    io.save_model(data, args.out)
-    print(json.dumps(report, indent=1))
-    print(f"wrote {args.out}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

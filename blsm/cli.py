@@ -1,4 +1,6 @@
-"""``blsm`` command line: ``info``, ``atoms``, ``demo``, ``build-anny``.
+"""``blsm`` command line: ``info``, ``atoms``, ``demo``, ``build-anny``; ``mocap ...``
+(:mod:`blsm.mocap.cli`) and the learning commands ``scans``, ``register``, ``learn``, ``train``,
+``evaluate``, ``train-smpl`` (:mod:`blsm.learn.cli`).
 
 Every command exits non-zero with a one-line ``blsm: error: ...`` on bad input and writes its
 outputs atomically, so an interrupted run leaves no half-written file.
@@ -221,7 +223,28 @@ def _tile(text: str) -> tuple[int, int]:
     return w, h
 
 
+def cmd_build_anny(args: argparse.Namespace) -> int:
+    """``blsm build-anny``: the model (or with ``--rig`` its rig) built from Anny (:mod:`blsm.build_anny`)."""
+    from blsm.build_anny import build, rig_of
+    from blsm.io import save_model
+
+    try:
+        data, report = build(n_bodies=args.bodies, seed=args.seed)
+        if args.rig:
+            data = rig_of(data)
+        save_model(data, args.out)
+    except ValueError as exc:
+        print(f"blsm build-anny: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+        return 2
+    print(json.dumps(report, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from blsm.learn.cli import add_parsers as add_learning
+    from blsm.mocap.cli import add_parser as add_mocap
+
     p = argparse.ArgumentParser(prog="blsm", description="Bone-Level Skinned Model tools")
     sub = p.add_subparsers(dest="cmd", required=True)
     info = sub.add_parser("info", help="print the model summary")
@@ -241,53 +264,22 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--tile", type=_tile, default=(240, 320))
     demo.add_argument("--spp", type=int, default=16)
     demo.set_defaults(func=cmd_demo)
-    build = sub.add_parser("build-anny", help="build the model from Anny (needs the 'build' extra)")
-    build.add_argument("--out", required=True)
-    build.add_argument("--rig", action="store_true")
+    build = sub.add_parser("build-anny", help="build the model from Anny (needs the 'build' extra)",
+                           description="Build the first BLSM from the Anny body model (``blsm build-anny``).")
+    build.add_argument("--out", type=Path, required=True, help="model file to write (.npz)")
     build.add_argument("--bodies", type=int, default=600)
     build.add_argument("--seed", type=int, default=0)
-    build.set_defaults(func=None)
-    from blsm.mocap.cli import add_parser as add_mocap
-
+    build.add_argument("--rig", action="store_true",
+                       help="write only the rig (template, skeleton, weights; no blendshapes): the "
+                            "starting point of `blsm train` (blsm/data/blsm_anny_rig.npz)")
+    build.set_defaults(func=cmd_build_anny)
     add_mocap(sub)
-    # Learning the model from scans (blsm.learn): each step parses its own arguments.
-    for name, text in PASSTHROUGH.items():
-        sub.add_parser(name, help=text, add_help=False).set_defaults(func=None)
+    add_learning(sub)  # scans, register, learn, train, evaluate, train-smpl (blsm.learn.cli)
     return p
 
 
-# ``blsm NAME ...`` runs ``main(argv)`` of the module: (module, help line).
-PASSTHROUGH_MODULES = {
-    "build-anny": "blsm.build_anny",
-    "scans": "blsm.learn.population",
-    "register": "blsm.learn.register",
-    "learn": "blsm.learn.train",
-    "train": "blsm.learn.pipeline",
-    "evaluate": "blsm.learn.evaluate",
-    "train-smpl": "blsm.learn.smpl_reimpl",
-}
-PASSTHROUGH = {
-    "scans": "make a scan population from Anny (the CAESAR / D-FAUST stand-in)",
-    "register": "register the template to scans (landmark fit, then free-form; Eqs. 5.13-5.25)",
-    "learn": "learn bone basis, correctives, shape and weights from registrations (Eqs. 5.26-5.31)",
-    "train": "the whole run: population, registration, learning, evaluation (one config)",
-    "evaluate": "held-out errors of BLSM-linear and SMPL-reimpl against the number of coefficients",
-    "train-smpl": "train the SMPL-reimpl baseline on registrations (Sec. 5.5.1)",
-}
-
-
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser()
-    if argv and argv[0] in PASSTHROUGH_MODULES:
-        import importlib
-
-        try:
-            return importlib.import_module(PASSTHROUGH_MODULES[argv[0]]).main(argv[1:])
-        except ValueError as exc:
-            print(f"blsm {argv[0]}: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-            return 2
-    args = parser.parse_args(argv)
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
     try:
         return args.func(args)
     except ValueError as exc:

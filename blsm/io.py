@@ -1,5 +1,9 @@
 """The BLSM model file: one versioned ``.npz`` archive (format ``blsm-model``, version 1).
 
+Also the one reader and writer of versioned ``.npz`` files (:func:`write_versioned_npz`,
+:func:`read_versioned_npz`) that every ``blsm`` file format uses, and the file helpers
+(:func:`atomic_write`, :func:`read_npz`, :func:`read_yaml`, :func:`sha256_file`).
+
 Arrays (V vertices, F faces, J bones, D = 47 atoms, Kb bone and Ks shape coefficients, K keypoints):
 
 =====================  ==================  ==========================================================
@@ -178,34 +182,69 @@ def read_yaml(path: str | Path, what: str) -> Any:
         raise ValueError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
 
 
+def write_versioned_npz(path: str | Path, fmt: str, version: int, arrays: dict[str, np.ndarray]) -> Path:
+    """Write a compressed ``.npz`` holding ``format``, ``format_version`` and ``arrays``, atomically.
+
+    The one writer of every versioned file format of ``blsm`` (model, registration, scan, pose
+    prior, SMPL-reimpl); :func:`read_versioned_npz` reads them back.
+
+    Args:
+        path: destination file; its folder is created if needed.
+        fmt: the format name stored as ``format`` (e.g. ``"blsm-model"``).
+        version: the format version stored as ``format_version``.
+        arrays: the other entries, in the order they are written (strings as 0-d ``np.array``).
+
+    Returns:
+        The path written.
+    """
+    path = Path(path)
+    with atomic_write(path) as fh:
+        np.savez_compressed(fh, format=np.array(fmt), format_version=np.array(version), **arrays)
+    return path
+
+
+def read_versioned_npz(path: str | Path, fmt: str, version: int, what: str) -> dict[str, np.ndarray]:
+    """All arrays of a file written by :func:`write_versioned_npz`, format and version checked.
+
+    Args:
+        path: the ``.npz`` file.
+        fmt: the expected ``format``.
+        version: the supported ``format_version``.
+        what: what the file is, for messages (``"model"`` gives "not a BLSM model file").
+
+    Raises:
+        ValueError: one line naming the file: missing, unreadable, another format, another version.
+    """
+    path = Path(path)
+    raw = read_npz(path, what)
+    found = str(raw["format"]) if "format" in raw else None
+    if found != fmt:
+        raise ValueError(f"{path}: not a BLSM {what} file (format={found!r})")
+    try:
+        got = int(raw["format_version"])
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{path}: bad or missing format_version") from None
+    if got != version:
+        raise ValueError(f"{path}: format_version {got} is not supported (expected {version})")
+    return raw
+
+
 def save_model(data: ModelData, path: str | Path) -> Path:
     """Write a model file atomically (temporary file, then rename)."""
     path = Path(path)
     validate(data, str(path))
-    with atomic_write(path) as fh:
-        np.savez_compressed(
-            fh,
-            format=np.array(FORMAT),
-            format_version=np.array(FORMAT_VERSION),
-            meta_json=np.array(json.dumps(data.meta, sort_keys=True)),
-            dof_table_yaml=np.array(data.dof_table_yaml),
-            **data.arrays,
-        )
-    return path
+    entries = {
+        "meta_json": np.array(json.dumps(data.meta, sort_keys=True)),
+        "dof_table_yaml": np.array(data.dof_table_yaml),
+        **data.arrays,
+    }
+    return write_versioned_npz(path, FORMAT, FORMAT_VERSION, entries)
 
 
 def read_model(path: str | Path) -> ModelData:
     """Read and validate a model file; errors name the file and the problem."""
     path = Path(path)
-    raw = read_npz(path, "model")
-    if str(raw.get("format", "")) != FORMAT:
-        raise ValueError(f"{path}: not a BLSM model file (format={raw.get('format')!r})")
-    try:
-        version = int(raw["format_version"])
-    except (KeyError, TypeError, ValueError):
-        raise ValueError(f"{path}: bad or missing format_version") from None
-    if version != FORMAT_VERSION:
-        raise ValueError(f"{path}: format_version {version} is not supported (expected 1)")
+    raw = read_versioned_npz(path, FORMAT, FORMAT_VERSION, "model")
     try:
         meta = json.loads(str(raw["meta_json"]))
     except (KeyError, json.JSONDecodeError) as exc:

@@ -1,4 +1,4 @@
-"""Mitsuba 3 set-up shared by the renderers: variant choice and OpenCV-camera sensors.
+"""Mitsuba 3 set-up shared by the renderers: variant choice, OpenCV-camera sensors, the environment.
 
 Mitsuba is imported lazily: importing this module never imports mitsuba nor sets a variant (the
 entry point chooses the variant once).  :func:`choose_variant` probes candidates in a subprocess,
@@ -9,7 +9,10 @@ imports mitsuba and activates it.
 :func:`to_world_matrix` and :func:`sensor_params` turn a :class:`blsm.camera.Camera` (OpenCV: x
 right, y down, z forward; ``K``, ``R``, ``t`` world to camera; pixel centres at integer + 0.5)
 into the ``to_world``, ``x_fov`` and principal point offsets of Mitsuba's ``perspective``
-sensor, for a film of the camera's width and height.
+sensor, for a film of the camera's width and height. :func:`perspective_sensor` is the sensor and
+film of every renderer (:mod:`blsm.render`, :mod:`synth.render`), and :func:`set_camera` points a
+loaded one at a camera. :func:`env_rotation` is the rotation of an environment map about +Y, the
+one the renderers give Mitsuba's ``envmap`` and the one :mod:`synth.ground` looks it up with.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import os
 import subprocess
 import sys
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -29,10 +33,13 @@ __all__ = [
     "DEFAULT_VARIANTS",
     "VARIANT_ENV",
     "choose_variant",
+    "env_rotation",
     "load_mitsuba",
+    "perspective_sensor",
     "probe_variant",
     "resolve_variant",
     "sensor_params",
+    "set_camera",
     "to_world_matrix",
 ]
 
@@ -291,3 +298,63 @@ def sensor_params(camera: Camera) -> tuple[float, float, float]:
     ppx = -(K[0, 2] - 0.5 * camera.width) / camera.width
     ppy = -(K[1, 2] - 0.5 * camera.height) / camera.height
     return float(x_fov), float(ppx), float(ppy)
+
+
+def perspective_sensor(width: int, height: int, sampler: dict[str, Any], pixel_format: str = "rgba") -> dict[str, Any]:
+    """The ``perspective`` sensor of every renderer, as a dict for ``mi.load_dict``.
+
+    A placeholder view (40 degrees across x, near clip 0.01 m, far clip 1000 m) that
+    :func:`set_camera` replaces with an OpenCV camera's, and an ``hdrfilm`` of ``width`` x
+    ``height`` pixels with a box filter: each sample stays in its own pixel, so no splatting races
+    between threads and the image is bit-reproducible (and 4x faster than a gaussian filter).
+
+    Args:
+        width, height: the film, pixels.
+        sampler: the sampler's dict (e.g. ``{"type": "independent", "sample_count": 16}``).
+        pixel_format: the film's channels: ``rgba`` gives antialiased coverage (alpha), ``rgb``
+            none.
+    """
+    return {
+        "type": "perspective",
+        "fov": 40.0,
+        "fov_axis": "x",
+        "near_clip": 0.01,
+        "far_clip": 1000.0,
+        "sampler": sampler,
+        "film": {
+            "type": "hdrfilm",
+            "width": width,
+            "height": height,
+            "pixel_format": pixel_format,
+            "rfilter": {"type": "box"},
+        },
+    }
+
+
+def set_camera(mi: Any, params: Any, name: str, camera: Camera, scalar: Callable[[float], Any] = float) -> None:
+    """Point the loaded :func:`perspective_sensor` ``name`` of a scene's ``params``
+    (``mi.traverse(scene)``) at an OpenCV ``camera``; the caller calls ``params.update()``.
+
+    Args:
+        mi: the mitsuba module, its variant set.
+        params: the scene's parameters.
+        name: the sensor's id in the scene.
+        camera: the camera (its size must be the film's).
+        scalar: wraps the field of view and the principal point's offsets; ``dr.opaque`` keeps
+            them out of compiled kernels as literals, so a new camera compiles nothing.
+    """
+    x_fov, ppx, ppy = sensor_params(camera)
+    params[f"{name}.to_world"] = mi.AffineTransform4f(to_world_matrix(camera))
+    params[f"{name}.x_fov"] = scalar(x_fov)
+    params[f"{name}.principal_point_offset_x"] = scalar(ppx)
+    params[f"{name}.principal_point_offset_y"] = scalar(ppy)
+
+
+def env_rotation(angle: float) -> np.ndarray:
+    """(3, 3) float64 rotation by ``angle`` radians about +Y: an environment map's ``to_world``.
+
+    The renderers give it to Mitsuba's ``envmap`` (as the upper left of a 4 x 4 transform);
+    :func:`synth.ground.env_lookup` looks the map up through it, so the two agree.
+    """
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])

@@ -17,11 +17,11 @@ from torch import nn
 from blsm import io
 from blsm.joint_limits import DofTable, angles_from_unconstrained, parse_dof_table
 from blsm.kinematics import (
-    tree_levels,
     bone_scales,
     forward_kinematics,
     joint_rotations,
     local_scales,
+    tree_levels,
 )
 from blsm.lbs import blend_shapes, linear_blend_skinning, linear_shape
 

@@ -46,7 +46,14 @@ import numpy as np
 
 from blsm.camera import Camera, Mesh, auto_camera, look_at_camera
 from blsm.color import linear_to_srgb, srgb_to_linear
-from blsm.mitsuba_util import choose_variant, load_mitsuba, resolve_variant, sensor_params, to_world_matrix
+from blsm.mitsuba_util import (
+    choose_variant,
+    load_mitsuba,
+    perspective_sensor,
+    resolve_variant,
+    sensor_params,
+    set_camera,
+)
 
 __all__ = [
     "DEFAULT_PALETTE",
@@ -178,25 +185,10 @@ class _SceneRenderer:
             # Direct lighting only: delta lights are noise-free, the weak constant
             # environment adds soft ambient occlusion (the only noisy term).
             "integrator": {"type": "direct", "hide_emitters": True},
-            "sensor": {
-                "type": "perspective",
-                "fov": 40.0,
-                "fov_axis": "x",
-                "near_clip": 0.01,
-                "far_clip": 1000.0,
-                # Low-discrepancy samples stratify light selection: ~4x less
-                # noise than "independent" at the same spp and cost.
-                "sampler": {"type": "ldsampler", "sample_count": 4},
-                "film": {
-                    "type": "hdrfilm",
-                    "width": width,
-                    "height": height,
-                    # rgba (not rgb): the alpha channel gives antialiased
-                    # coverage so the background can be composited exactly.
-                    "pixel_format": "rgba",
-                    "rfilter": {"type": "box"},
-                },
-            },
+            # Low-discrepancy samples stratify light selection: ~4x less noise than "independent"
+            # at the same spp and cost. The film is rgba (not rgb): the alpha channel gives
+            # antialiased coverage so the background can be composited exactly.
+            "sensor": perspective_sensor(width, height, {"type": "ldsampler", "sample_count": 4}, "rgba"),
             "env": {"type": "constant", "radiance": {"type": "rgb", "value": [_ENV_RADIANCE] * 3}},
         }
         for name, (_, irradiance) in _LIGHTS.items():
@@ -239,11 +231,7 @@ class _SceneRenderer:
                 _assign(p, f"{mid}.vertex_color", vc.reshape(-1))
             else:
                 p[f"{mid}.bsdf.reflectance.value"] = mi.Color3f(*[float(a) for a in alb])
-        x_fov, ppx, ppy = sensor_params(camera)
-        p["sensor.to_world"] = mi.AffineTransform4f(to_world_matrix(camera))
-        p["sensor.x_fov"] = x_fov
-        p["sensor.principal_point_offset_x"] = ppx
-        p["sensor.principal_point_offset_y"] = ppy
+        set_camera(mi, p, "sensor", camera)
         for name, (towards, _) in _LIGHTS.items():
             towards_world = camera.R.T @ (towards / np.linalg.norm(towards))
             p[f"{name}.to_world"] = mi.AffineTransform4f(_directional_to_world(-towards_world))

@@ -5,13 +5,13 @@ PCA on held-out meshes, then trains Configs A-F (``A.yaml`` ... ``F.yaml``; D an
 autoencoder), evaluates each run's last checkpoint on the test set (``recovery evaluate``: the same
 people for all), and writes
 
-- ``docs/recovery_ablation.json``: ``{"configs": {"A": {"joint_mm", "vertex_mm", "pa_joint_mm",
+- ``docs/figures/recovery_ablation.json``: ``{"configs": {"A": {"joint_mm", "vertex_mm", "pa_joint_mm",
   ...}, ...}, "autoencoder": {"vertex_mm", "pca_vertex_mm", ...}}`` (errors in the body frame, the
   global rotation removed, as thesis Table 4.3; the camera-frame metrics of ``recovery evaluate``
   alongside);
 - ``docs/recovery_ablation.md``: the table, the thesis' claims checked, budgets and the split;
-- ``docs/recovery_ablation_C_vs_A.png`` and ``..._E_vs_B.png`` (thesis Figs. 4.5, 4.6) and
-  ``docs/recovery_ablation_roughness.png`` (every config's meshes of the same people, coloured by
+- ``docs/figures/recovery_ablation_C_vs_A.png`` and ``..._E_vs_B.png`` (thesis Figs. 4.5, 4.6) and
+  ``docs/figures/recovery_ablation_roughness.png`` (every config's meshes of the same people, coloured by
   the length of the uniform Laplacian: spikes show).
 
 Every stage is skipped when its output is complete (a finished run, an evaluation of the same
@@ -39,7 +39,7 @@ THESIS = {  # Table 4.3 (Human3.6M, mm)
 
 
 def _run_done(run: Path, steps: int) -> bool:
-    from recovery.trainer import read_checkpoint
+    from recovery.checkpoint import read_checkpoint
 
     last = run / "last.pt"
     return last.is_file() and int(read_checkpoint(last)["step"]) >= steps
@@ -57,10 +57,10 @@ def train_stage(config: Path, run: Path, log: Any = print) -> float:
         if train(cfg, run, resume=True, log=log) != "done":
             raise KeyboardInterrupt
     recs = [r for r in read_log(run / "log.jsonl") if r["kind"] == "train"]
-    return _train_seconds(recs)
+    return train_seconds(recs)
 
 
-def _train_seconds(recs: list[dict[str, Any]]) -> float:
+def train_seconds(recs: list[dict[str, Any]]) -> float:
     """Sum of the logged intervals, leaving out gaps longer than 10 minutes (a run resumed later)."""
     t = [r["time"] for r in recs]
     gaps = np.diff(t) if len(t) > 1 else np.zeros(0)
@@ -73,12 +73,13 @@ def autoencoder_report(checkpoint: Path, config: Path, log: Any = print) -> dict
     """Held-out mean vertex error (mm) of the autoencoder and of PCA with as many components as the
     latent code, fitted on training meshes of the same distribution (thesis Sec. 4.3.3)."""
     import blsm
-    from recovery.config import load_config
+    from recovery.checkpoint import read_checkpoint
+    from recovery.config import load_config, model_file
+    from recovery.datasets.meshes import MeshSource, describe, fixed_meshes
+    from recovery.eval.metrics import vertex_error_mm
     from recovery.mesh.operators import mesh_operators
-    from recovery.mesh_data import MeshSource, PCAModel, describe, fixed_meshes, vertex_error_mm
     from recovery.models.mesh_ae import MeshAutoencoder
-    from recovery.train import model_file
-    from recovery.trainer import read_checkpoint
+    from recovery.models.pca import PCAModel
 
     cfg = load_config(config)
     path = model_file(cfg)
@@ -127,8 +128,8 @@ def autoencoder_report(checkpoint: Path, config: Path, log: Any = print) -> dict
 
 def evaluate_stage(run: Path, dataset: Path, log: Any = print) -> dict[str, Any]:
     """``recovery evaluate`` of the run's last checkpoint (skipped when done for the same step)."""
-    from recovery.evaluate import evaluate
-    from recovery.trainer import read_checkpoint
+    from recovery.checkpoint import read_checkpoint
+    from recovery.eval.evaluate import evaluate
 
     out = run / "eval"
     step = int(read_checkpoint(run / "last.pt")["step"])
@@ -146,7 +147,7 @@ def evaluate_stage(run: Path, dataset: Path, log: Any = print) -> dict[str, Any]
 
 
 def _people(dataset: Path, count: int, crop: int) -> list[dict[str, Any]]:
-    from recovery.data import spread_indices
+    from recovery.datasets.sampling import spread_indices
     from synth.data import SynthDataset
 
     ds = SynthDataset(dataset, crop=crop, augment=None, box_scale=1.2)
@@ -168,7 +169,7 @@ def comparison_sheet(runs: dict[str, Path], people: list[dict[str, Any]], png: P
     from PIL import Image, ImageDraw
 
     from recovery.models.hmr import body_outputs
-    from recovery.viz import overlay, side_view
+    from recovery.utils.viz import overlay, side_view
 
     preds = {name: _predict(run / "last.pt", people) for name, run in runs.items()}
     body = next(iter(preds.values()))[0].body
@@ -208,15 +209,15 @@ def roughness_sheet(runs: dict[str, Path], people: list[dict[str, Any]], png: Pa
     Laplacian length."""
     from PIL import Image, ImageDraw
 
-    from recovery.evaluate import uniform_laplacian
-    from recovery.mesh_data import body_frame_vertices
-    from recovery.models.hmr import UPRIGHT_FACING_CAMERA
-    from recovery.viz import side_view
+    from blsm.mesh import uniform_laplacian_matrix
+    from recovery.datasets.meshes import body_frame_vertices
+    from recovery.utils.geometry import UPRIGHT_FACING_CAMERA
+    from recovery.utils.viz import side_view
 
     preds = {name: _predict(run / "last.pt", people) for name, run in runs.items()}
     body = next(iter(preds.values()))[0].body
     faces = body.faces.numpy()
-    lap = uniform_laplacian(faces, body.num_vertices)
+    lap = uniform_laplacian_matrix(faces, body.num_vertices)
     with torch.no_grad():
         labels = body_frame_vertices(body, torch.stack([torch.as_tensor(p["pose"]) for p in people]),
                                      torch.stack([torch.as_tensor(p["bone"]) for p in people]),
@@ -244,7 +245,7 @@ def roughness_sheet(runs: dict[str, Path], people: list[dict[str, Any]], png: Pa
 
 def run_ablation(config_dir: str | Path, test: str | Path, out: str | Path, docs: str | Path = "docs",
                  log: Any = print) -> dict[str, Any]:
-    """Everything of the module docstring; returns the JSON written to ``docs/recovery_ablation.json``."""
+    """Everything of the module docstring; returns the JSON written to ``docs/figures/recovery_ablation.json``."""
     from recovery.config import load_config
 
     config_dir, test, out, docs = Path(config_dir), Path(test), Path(out), Path(docs)
@@ -281,10 +282,12 @@ def run_ablation(config_dir: str | Path, test: str | Path, out: str | Path, docs
             "train_minutes": seconds / 60, "thesis": THESIS[name],
         }
     people = _people(test, 6, load_config(config_dir / "A.yaml").data.crop)
-    comparison_sheet({"A": out / "A", "C": out / "C"}, people, docs / "recovery_ablation_C_vs_A.png", "thesis Fig. 4.5: C (decoder) vs A (parameters)")
-    comparison_sheet({"B": out / "B", "E": out / "E"}, people, docs / "recovery_ablation_E_vs_B.png", "thesis Fig. 4.6: E (decoder + BEGAN) vs B (HMR-BLSM)")
-    roughness_sheet({n: out / n for n in CONFIGS}, people[:4], docs / "recovery_ablation_roughness.png")
-    with atomic_write(docs / "recovery_ablation.json", "w") as fh:
+    figures = docs / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
+    comparison_sheet({"A": out / "A", "C": out / "C"}, people, figures / "recovery_ablation_C_vs_A.png", "thesis Fig. 4.5: C (decoder) vs A (parameters)")
+    comparison_sheet({"B": out / "B", "E": out / "E"}, people, figures / "recovery_ablation_E_vs_B.png", "thesis Fig. 4.6: E (decoder + BEGAN) vs B (HMR-BLSM)")
+    roughness_sheet({n: out / n for n in CONFIGS}, people[:4], figures / "recovery_ablation_roughness.png")
+    with atomic_write(figures / "recovery_ablation.json", "w") as fh:
         fh.write(json.dumps(result, indent=1))
     with atomic_write(docs / "recovery_ablation.md", "w") as fh:
         fh.write(report_markdown(result, config_dir, out, docs))
@@ -307,7 +310,7 @@ def claims(result: dict[str, Any]) -> list[tuple[str, bool, str]]:
 
 
 def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: Path = Path("docs")) -> str:
-    """The report; ``docs/recovery_ablation_gpu.json`` (a GPU run) and ``docs/recovery_ablation_notes.md``
+    """The report; ``docs/figures/recovery_ablation_gpu.json`` (a GPU run) and ``docs/recovery_ablation_notes.md``
     (measured discussion) are included when present."""
     c, ae = result["configs"], result["autoencoder"]
     lines = [
@@ -349,7 +352,7 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: P
               "|---|" + "---|" * len(ae["pca_by_components"]),
               "| clips | " + " | ".join(f"{v[0]:.2f}" for v in ae["pca_by_components"].values()) + " |",
               "| prior | " + " | ".join(f"{v[1]:.2f}" for v in ae["pca_by_components"].values()) + " |", ""]
-    gpu = docs / "recovery_ablation_gpu.json"
+    gpu = docs / "figures" / "recovery_ablation_gpu.json"
     if gpu.is_file():
         lines += ["## On a GPU", ""]
         for g in json.loads(gpu.read_text())["runs"]:
@@ -368,7 +371,8 @@ def report_markdown(result: dict[str, Any], config_dir: Path, out: Path, docs: P
     notes = docs / "recovery_ablation_notes.md"
     if notes.is_file():
         lines += [notes.read_text().rstrip(), ""]
-    lines += ["Figures: `recovery_ablation_C_vs_A.png` (Fig. 4.5), `recovery_ablation_E_vs_B.png` (Fig. 4.6), "
-              "`recovery_ablation_roughness.png` (every config's meshes of the same people, faces coloured by the "
-              "uniform Laplacian's length).", ""]
+    fig = "[`{0}`](figures/{0})".format
+    lines += [f"Figures: {fig('recovery_ablation_C_vs_A.png')} (Fig. 4.5), {fig('recovery_ablation_E_vs_B.png')} "
+              f"(Fig. 4.6), {fig('recovery_ablation_roughness.png')} (every config's meshes of the same people, "
+              "faces coloured by the uniform Laplacian's length).", ""]
     return "\n".join(lines)

@@ -55,7 +55,7 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("configs", help="folder with autoencoder.yaml and A.yaml ... F.yaml")
     a.add_argument("--test", required=True, help="the test dataset folder")
     a.add_argument("--out", required=True, help="run folder (one sub-folder per config)")
-    a.add_argument("--docs", default="docs", help="where recovery_ablation.{md,json} and the figures go")
+    a.add_argument("--docs", default="docs", help="where recovery_ablation.md goes (its JSON and figures under figures/)")
     r = sub.add_parser("transfer", help="real-photo transfer check against a reference 2D pose estimator (docs/transfer.md)")
     r.add_argument("checkpoint")
     r.add_argument("--real", required=True, help="folder of real images with boxes.json")
@@ -63,7 +63,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     r.add_argument("--synthetic-people", type=int, default=400, help="at most N synthetic people, spread over the set")
     r.add_argument("--reference-command", help="the reference's command line, run with JOB.json OUT.json appended "
-                   "(default: recovery/reference_pose.py in .venv-reference)")
+                   "(default: recovery/eval/reference_pose.py in .venv-reference)")
     r.add_argument("--sheet", type=int, default=48, help="people on each overlay sheet")
     r.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
     return p
@@ -97,7 +97,7 @@ def _run(args: argparse.Namespace) -> int:
         status = train(load_config(args.config), args.out, resume=args.resume)
         return 130 if status == "interrupted" else 0
     if args.cmd == "evaluate":
-        from recovery.evaluate import evaluate, format_report
+        from recovery.eval.evaluate import evaluate, format_report
 
         if args.max_people < 0 or args.batch < 1:
             raise ValueError("--max-people must be >= 0 and --batch >= 1")
@@ -112,7 +112,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"wrote {args.out}/params.json, mesh.obj, overlay.png")
         return 0
     if args.cmd == "cache":
-        from recovery.data import build_cache
+        from recovery.datasets.cache import build_cache
 
         build_cache(args.dataset, args.out, args.crop, args.context)
         return 0
@@ -134,10 +134,10 @@ def _run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             print("recovery: ablation interrupted; run the same command to continue", file=sys.stderr)
             return 130
-        print(f"wrote {args.docs}/recovery_ablation.md and recovery_ablation.json")
+        print(f"wrote {args.docs}/recovery_ablation.md and {args.docs}/figures/recovery_ablation.json")
         return 0
     if args.cmd == "transfer":
-        from recovery.transfer import format_report, run_transfer
+        from recovery.eval.transfer import format_report, run_transfer
 
         if args.synthetic_people < 1 or args.sheet < 0:
             raise ValueError("--synthetic-people must be >= 1 and --sheet >= 0")

@@ -17,7 +17,8 @@ from typing import Any
 
 from blsm.config import config_from_dict
 from blsm.io import read_yaml
-from recovery.mesh_data import MeshDataConfig
+from recovery.datasets.meshes import MeshDataConfig
+from synth.data import AugmentConfig
 
 BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 TASKS = ("hmr_blsm", "mesh", "autoencoder")
@@ -58,18 +59,10 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
-class AugmentSpec:
-    """Random crop augmentation applied per batch (defaults after SPIN; see :class:`synth.data.AugmentConfig`)."""
+class AugmentSpec(AugmentConfig):
+    """The per-batch crop augmentation: :class:`synth.data.AugmentConfig` (its fields and checks, after
+    SPIN) with recovery's one other default, no hue shift."""
 
-    scale: float = 0.25
-    rotation_deg: float = 30.0
-    rotation_prob: float = 0.6
-    flip_prob: float = 0.5
-    translation: float = 0.05
-    color: float = 0.4
-    brightness: float = 0.1
-    contrast: float = 0.2
-    saturation: float = 0.2
     hue: float = 0.0  # kornia's HSV round trip was 40 % of the loader's time; the gains shift hue already
 
 
@@ -166,7 +159,7 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class LossConfig:
-    """Loss weights (:mod:`recovery.losses`); 0 switches a term off.
+    """Loss weights (:mod:`recovery.models.losses`); 0 switches a term off.
 
     2D keypoints are L1 in crop coordinates normalised to [-0.5, 0.5] (HMR 2.0), weighted by
     visibility; 3D keypoints L1 in metres after aligning the pelvis; parameters are MSE on the
@@ -424,3 +417,10 @@ def load_config(path: str | Path) -> RecoveryConfig:
 def config_from_json(data: dict[str, Any], src: str) -> RecoveryConfig:
     """A config stored in a checkpoint (tuples come back as lists; the strict loader accepts them)."""
     return config_from_dict(RecoveryConfig, data, src)
+
+
+def model_file(cfg: RecoveryConfig) -> Path:
+    """The BLSM model file of a config: ``model.blsm_model``, or the packaged model."""
+    from blsm.model import DEFAULT_MODEL
+
+    return Path(cfg.model.blsm_model) if cfg.model.blsm_model else DEFAULT_MODEL

@@ -25,7 +25,7 @@ import torch
 
 from blsm.io import atomic_write
 from recovery.predictor import load_predictor
-from recovery.viz import face_parts, overlay, parts_overlay
+from recovery.utils.viz import face_parts, overlay, parts_overlay
 from synth.data import crop_affine, warp_to_crop
 
 

@@ -1,5 +1,5 @@
 """Load a trained network for inference: a run's ``best.pt`` / ``last.pt``, an exported file, or
-``default`` (the packaged checkpoint, :data:`DEFAULT_CHECKPOINT`).
+``default`` (the packaged checkpoint, :data:`recovery.checkpoint.DEFAULT_CHECKPOINT`).
 
 Both recovery networks answer with one :class:`Prediction` (camera frame, metres): HMR-BLSM through
 the BLSM model on its parameters, the image-to-mesh network (``task: mesh``) through its decoded
@@ -19,13 +19,20 @@ import torch
 
 import blsm
 from blsm.io import sha256_file
-from recovery.config import RecoveryConfig, config_from_json
-from recovery.geometry import cam_to_translation, project
-from recovery.models.hmr import HMROutput, UPRIGHT_FACING_CAMERA, body_outputs, flip_average, predict_body
-from recovery.trainer import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, DEFAULT_CHECKPOINT, read_checkpoint, resolve, save_atomic
+from recovery.checkpoint import (
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    read_checkpoint,
+    resolve,
+    save_atomic,
+)
+from recovery.config import RecoveryConfig, config_from_json, model_file
+from recovery.models.hmr import HMROutput, body_outputs, flip_average, predict_body
+from recovery.tasks import TASKS as TRAINED
+from recovery.utils.geometry import UPRIGHT_FACING_CAMERA, cam_to_translation, project
 
-
-TASKS = ("hmr_blsm", "mesh")
+TASKS = tuple(name for name, spec in TRAINED.items() if spec.inference_model is not None)
+"""The tasks whose checkpoints predict (``hmr_blsm``, ``mesh``)."""
 
 
 @dataclass
@@ -136,8 +143,6 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
         ValueError: one line naming the file: missing, corrupt, another task, made for another
             model file, or weights that do not fit its config.
     """
-    from recovery.train import model_file
-
     path = resolve(checkpoint)
     ck = read_checkpoint(path)
     if ck.get("task") not in TASKS:
@@ -150,21 +155,7 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
         raise ValueError(f"{path}: made for another BLSM model file than {mpath} (SHA-256 differs)")
     body = blsm.load(mpath)
     state = {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"]["model"].items()}
-    regressor = None
-    if cfg.task == "hmr_blsm":
-        from recovery.hmr_task import build_model
-
-        model = build_model(cfg, body, pretrained=False)
-    else:
-        from recovery.mesh.operators import mesh_operators
-        from recovery.models.mesh_net import MeshRegressor
-
-        ops = mesh_operators(mpath, cfg.mesh.cache, cfg.mesh.ops_settings(), log=log)
-        nv = body.num_vertices
-        m = cfg.mesh
-        model = MeshRegressor(cfg.model.backbone, ops, torch.zeros(nv, 3), torch.ones(nv, 3), torch.zeros(3),
-                              pretrained=False, channels=tuple(m.channels), latent=m.latent, hidden=m.hidden)
-        regressor = torch.as_tensor(ops.regressor)
+    model, regressor = TRAINED[cfg.task].inference_model(cfg, body, mpath, log)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:

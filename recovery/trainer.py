@@ -25,7 +25,6 @@ import csv
 import json
 import math
 import os
-import pickle
 import signal
 import sys
 import time
@@ -36,9 +35,7 @@ from typing import Any, Protocol
 import torch
 
 from recovery import distributed as D
-
-CHECKPOINT_FORMAT = "recovery-checkpoint"
-CHECKPOINT_VERSION = 1
+from recovery.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION, read_checkpoint, save_atomic
 
 
 class Task(Protocol):
@@ -67,52 +64,6 @@ class Task(Protocol):
     def load_extra_state(self, state: dict[str, Any]) -> None: ...
 
     def checkpoint_meta(self) -> dict[str, Any]: ...
-
-
-def save_atomic(obj: Any, path: Path) -> None:
-    """``torch.save`` into a hidden temporary file beside ``path``, then rename (never a partial file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        torch.save(obj, tmp)
-        with open(tmp, "rb") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-DEFAULT_CHECKPOINT = Path(__file__).parent / "data" / "hmr_blsm_default.pt"
-"""The packaged HMR-BLSM (``recovery export``; how it was trained: docs/recovery.md)."""
-
-
-def resolve(checkpoint: str | Path) -> Path:
-    """A checkpoint's path: ``default`` is the packaged one."""
-    return DEFAULT_CHECKPOINT if str(checkpoint) == "default" else Path(checkpoint)
-
-
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Load a checkpoint file onto the CPU; a missing, corrupt or foreign file is a one-line ValueError."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such checkpoint")
-    try:
-        # weights_only: tensors, numbers, strings and containers only; a file that needs arbitrary
-        # unpickling (code) is refused, never run
-        ck = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - any failure to read means a corrupt or refused file
-        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-        code = next((ln for ln in lines if "Unsupported global" in ln or "GLOBAL" in ln), None)
-        if isinstance(exc, pickle.UnpicklingError) and code is not None:
-            raise ValueError(f"{path}: refused: loading it would run code or unknown types ({code[:120]})") from None
-        # random bytes also fail the weights-only unpickler ("Unsupported operand"): that is corruption
-        what = next((ln for ln in lines if "Unsupported operand" in ln), lines[0] if lines else "")
-        raise ValueError(f"{path}: corrupt checkpoint ({type(exc).__name__}: {what[:120]})") from None
-    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a {CHECKPOINT_FORMAT!r} file")
-    if int(ck.get("version", -1)) != CHECKPOINT_VERSION:
-        raise ValueError(f"{path}: checkpoint version {ck.get('version')} (this code reads {CHECKPOINT_VERSION})")
-    return ck
 
 
 class Progress:

@@ -13,7 +13,7 @@ Design (docs/scaling.md has the how-to and the measurements):
   and write their shards there. ``fsspec`` URLs (``s3://``) are not supported: a shard appears by an
   atomic rename of its temporary file, which object stores do not offer.
 - **A task** makes its shard's samples in index order, in a Ray worker process that loads the
-  model, subjects and backgrounds once and keeps its Mitsuba scenes for later tasks of the run
+  model, subjects and backgrounds once (:mod:`synth.worker`, as the local process pool's workers do) and keeps its Mitsuba scenes for later tasks of the run
   (replaced after ``render.recycle_after`` images, as local workers are). It writes the shard to
   ``.shard-NNNNNN.tar.<host>.<pid>.tmp`` and renames it, and returns the shard's SHA-256 and size;
   the driver checks that the file it sees has that size before listing the shard (it never reads
@@ -36,29 +36,13 @@ import os
 import socket
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from synth import worker
 from synth.config import GeneratorConfig
+from synth.progress import Progress, log
 from synth.shards import ShardWriter, WriteError, shard_name, write_shard
-
-
-@dataclass(frozen=True)
-class Worker:
-    """What the engine needs of the generator (passed in by :func:`synth.generate.generate`, which
-    imports this module, so that this module does not import it back).
-
-    Attributes:
-        init: ``(cfg_json, out, variant, threads, pool_worker)``: load a worker's state.
-        make_one: ``index -> (index, fields or None, error type, message)``: make one sample.
-        log: one ``[synth]`` line on stderr.
-    """
-
-    init: Callable[..., None]
-    make_one: Callable[[int], tuple[int, dict[str, bytes] | None, str, str]]
-    log: Callable[[str], None]
-
 
 _KEY: str = ""
 _MADE = 0
@@ -70,10 +54,10 @@ rewrite per shard would be the driver's main work. A driver killed in between lo
 seconds of listed shards; ``--resume`` makes them again (the same bytes)."""
 
 
-def _shard_task(worker: Worker, cfg_json: dict, out: str, variant: str, threads: int, shard: int, start: int,
-                stop: int, skip_bad: bool, counter: Any) -> dict[str, Any]:
+def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int, start: int, stop: int,
+                skip_bad: bool, counter: Any) -> dict[str, Any]:
     """Make and write shard ``shard`` (samples ``start .. stop - 1``) in a Ray worker process, with
-    the generator's worker functions (:class:`Worker`).
+    the generator's worker (:mod:`synth.worker`).
 
     Returns:
         ``{"shard", "sha256", "samples", "first", "skipped"}``, or ``{"shard", "error"}`` for a
@@ -82,7 +66,7 @@ def _shard_task(worker: Worker, cfg_json: dict, out: str, variant: str, threads:
     global _KEY, _MADE
     key = json.dumps([cfg_json, out, variant, threads], sort_keys=True)
     if key != _KEY or _MADE >= int(cfg_json["render"]["recycle_after"]):
-        worker.init(cfg_json, out, variant, threads, True)
+        worker.init_worker(cfg_json, out, variant, threads, True)
         _KEY, _MADE = key, 0
     samples: list[tuple[int, dict[str, bytes]]] = []
     left_out: list[dict[str, Any]] = []
@@ -174,18 +158,16 @@ def run_ray(
     writer: ShardWriter,
     plan: tuple[list[int], dict[str, Any], list[dict[str, Any]]],
     variant: str,
-    worker: Worker,
-    meter: Any,
+    meter: Progress,
     on_image: Callable[[int], None] | None,
 ) -> dict[str, Any]:
     """The shards of :func:`synth.generate.generate` as Ray tasks (module docstring); the manifest.
     This process must be connected to the cluster (:func:`connect`).
 
     Args:
-        cfg_json: ``cfg`` as JSON (what a worker's ``init`` takes).
+        cfg_json: ``cfg`` as JSON (what :func:`synth.worker.init_worker` takes).
         plan: the shards to make (all of them are made), the finished ones, their skipped samples.
-        worker: the generator's worker functions.
-        meter: the progress meter (``tick()``, ``shard(msg)``, ``close()``, ``made``).
+        meter: the run's progress meter.
 
     Raises:
         ValueError: a failed write (:class:`WriteError`).
@@ -200,7 +182,7 @@ def run_ray(
     total = sum(len(writer.indices(s)) for s in todo)
     nodes = [n for n in ray.nodes() if n.get("Alive")]
     cpus = int(sum(n.get("Resources", {}).get("CPU", 0) for n in nodes))
-    worker.log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
+    log(f"{total} images in {len(todo)} shards -> {out} (Ray: {len(nodes)} nodes, {cpus} CPUs, "
                f"{cfg.engine.cpus_per_task} per task; Mitsuba {variant})")
     task = ray.remote(_shard_task).options(num_cpus=cfg.engine.cpus_per_task, max_retries=cfg.engine.max_retries,
                                            retry_exceptions=False)
@@ -211,7 +193,7 @@ def run_ray(
     counter = ray.remote(num_cpus=0)(_Counter).options(scheduling_strategy=here).remote()
     cfg_ref, where = ray.put(cfg_json), str(out.resolve())
     refs = {
-        task.remote(worker, cfg_ref, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
+        task.remote(cfg_ref, where, variant, cfg.engine.cpus_per_task, s, writer.indices(s).start,
                     writer.indices(s).stop, cfg.skip_bad, counter): s
         for s in todo
     }
@@ -250,7 +232,7 @@ def run_ray(
                 meter.shard(writer.progress_line(s, res["samples"], shards_done))
         retried = ray.get(counter.retried.remote())
         if retried:
-            worker.log(f"{len(retried)} shards made again after their worker or node was lost: "
+            log(f"{len(retried)} shards made again after their worker or node was lost: "
                        + ", ".join(shard_name(x) for x in retried))
     finally:
         for ref in waiting:

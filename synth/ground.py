@@ -34,7 +34,8 @@ ground). Labels are unaffected: the ground is not a person, so masks, parts, dep
 are those of the people alone.
 
 The environment lookups follow Mitsuba's ``envmap`` exactly (lat-long, ``u = atan2(x, -z) / 2 pi``,
-``v = acos(y) / pi``, bilinear with rows from the zenith to the nadir, ``to_world`` a rotation about +Y), so the
+``v = acos(y) / pi``, bilinear with rows from the zenith to the nadir, ``to_world`` the rotation about +Y of
+:func:`blsm.mitsuba_util.env_rotation`, which the renderer gives the envmap too), so the
 backdrop matches what the path tracer showed before (``tests/synth/test_ground.py`` compares).
 """
 
@@ -48,14 +49,9 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 
 from blsm.camera import Camera
+from blsm.mitsuba_util import env_rotation
 
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
-
-
-def _rotation(angle: float) -> np.ndarray:
-    """The environment's ``to_world`` rotation about +Y (synth.render)."""
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
 def env_lookup(env: np.ndarray, directions: np.ndarray, rotation: float = 0.0, scale: float = 1.0) -> np.ndarray:
@@ -63,7 +59,7 @@ def env_lookup(env: np.ndarray, directions: np.ndarray, rotation: float = 0.0, s
     Mitsuba's ``envmap`` with ``to_world`` a rotation by ``rotation`` about +Y and ``scale``."""
     d = np.asarray(directions, np.float64)
     d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    v = d @ _rotation(rotation)  # to_world^-1 applied to row vectors: R^T d
+    v = d @ env_rotation(rotation)  # to_world^-1 applied to row vectors: R^T d
     h, w = env.shape[:2]
     u = np.arctan2(v[:, 0], -v[:, 2]) / (2.0 * math.pi)
     u -= np.floor(u)
@@ -205,7 +201,7 @@ class EnvSampler:
         phi = u * 2.0 * math.pi  # atan2(x, -z) = phi
         local = np.stack([np.sin(t) * np.sin(phi), np.cos(t), -np.sin(t) * np.cos(phi)], axis=-1)
         local[:, 1] = np.maximum(local[:, 1], 1e-4)
-        world = local @ _rotation(self.rotation).T
+        world = local @ env_rotation(self.rotation).T
         return world / np.linalg.norm(world, axis=-1, keepdims=True)
 
 

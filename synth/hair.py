@@ -176,46 +176,110 @@ def build_hair(
     Raises:
         ValueError: a body without the bones above, or without a head to grow hair on.
     """
-    from scipy.spatial import cKDTree
-
-    from blsm.mesh import vertex_normals
-
-    vertices = np.asarray(vertices, np.float64)
-    bi = {n: i for i, n in enumerate(bone_names)}
-    if missing := [b for b in _COLLIDE_BONES if b not in bi]:
-        raise ValueError(f"hair needs the bones {missing}")
+    body = _Body.of(vertices, faces, weights, bone_names, joints)
     rng = np.random.default_rng(spec.seed)
-    vb = np.asarray(weights).argmax(1)
-    jh = np.asarray(joints[bi["head"]], np.float64)
-    head = vb == bi["head"]
-    up = vertices[head & (vertices[:, 1] > jh[1])]
-    if len(up) < 20:
-        raise ValueError("the body has no head to grow hair on")
-    h_head = float(up[:, 1].max() - jh[1])
-    cx, cz = 0.5 * (up[:, 0].min() + up[:, 0].max()), 0.5 * (up[:, 2].min() + up[:, 2].max())
-    centre = np.array([cx, jh[1] + 0.55 * h_head, cz])
-    radius = 0.5 * float(up[:, 2].max() - up[:, 2].min())
-    half_x = 0.5 * float(up[:, 0].max() - up[:, 0].min()) + 0.01
-    normals = vertex_normals(vertices, np.asarray(faces, np.int64))
+    roots, root_n = _roots(body, rng)
+    growth = _Growth(body, roots, root_n, spec, rng)
+    growth.run()
+    pts, nearest, hanging, u, total = _resample(growth)
+    frac = u / total  # 0 at the root, 1 at the tip
+    tang = _unit(np.gradient(pts, axis=1))
+    if spec.curl > 0:
+        pts, tang = _curl(pts, tang, u, frac, total, spec, rng)
+    # Every point off the skin (a curl can wind a strand into it, resampling can cut a corner).
+    flat = pts.reshape(-1, 3)
+    v, n, _ = body.skin(flat)
+    flat += np.maximum(_SKIN_GAP - ((flat - v) * n).sum(1), 0.0)[:, None] * n
+    pts = flat.reshape(pts.shape)
+    # Ribbons facing away from the skin under them.
+    out = body.normals[nearest]
+    across = _unit(np.cross(tang, out), _unit(np.cross(tang, np.array([0.0, 0.0, 1.0]))))
+    half = 0.5 * spec.width * (1.0 - 0.6 * frac)[..., None] * rng.uniform(0.7, 1.3, (NUM_STRANDS, 1, 1))
+    ribbon = np.stack([pts - half * across, pts + half * across], 2).reshape(-1, 3)
+    colours = _colours(spec, frac, total, rng)
+    weights_out = _strand_weights(body, pts, nearest, hanging, growth.let_go)
+    return HairMesh(
+        vertices=ribbon.astype(np.float32), faces=hair_faces(), colours=colours.astype(np.float32),
+        weights=weights_out.astype(np.float32),
+    )  # fmt: skip
 
-    # The skin strands grow on and are kept off: the head, neck, chest and clavicles (not the arms,
-    # along which hanging strands would slide).
-    near = np.isin(vb, [bi[b] for b in _COLLIDE_BONES])
-    near_idx = np.flatnonzero(near)
-    tree = cKDTree(vertices[near])
 
-    def skin(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        i = near_idx[tree.query(p)[1]]
-        return vertices[i], normals[i], i
+@dataclass(frozen=True)
+class _Body:
+    """The body a hair grows on, in the rest frame, and the head's frame.
 
-    # Roots: area-weighted points of the scalp faces above the hairline.
+    Attributes:
+        vertices: (V, 3) float64; ``faces`` (F, 3); ``weights`` (V, J); ``normals`` (V, 3) unit.
+        vb: (V,) each vertex's dominant bone; ``bi`` bone name -> index.
+        jh: (3,) the head joint; ``up`` (U, 3) the head's vertices above it, ``h_head`` their
+            height over it.
+        cx, cz: the middle of the head in x and z; ``centre`` (3,) the skull's centre, ``radius``
+            half its depth, ``half_x`` half its width (plus 1 cm).
+        near: (V,) bool, the skin strands grow on and are kept off: the head, neck, chest and
+            clavicles (not the arms, along which hanging strands would slide).
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    weights: np.ndarray
+    normals: np.ndarray
+    vb: np.ndarray
+    bi: dict[str, int]
+    jh: np.ndarray
+    up: np.ndarray
+    h_head: float
+    cx: float
+    cz: float
+    centre: np.ndarray
+    radius: float
+    half_x: float
+    near: np.ndarray
+    near_idx: np.ndarray
+    tree: Any
+
+    @staticmethod
+    def of(vertices, faces, weights, bone_names, joints) -> _Body:
+        from scipy.spatial import cKDTree
+
+        from blsm.mesh import vertex_normals
+
+        vertices = np.asarray(vertices, np.float64)
+        bi = {n: i for i, n in enumerate(bone_names)}
+        if missing := [b for b in _COLLIDE_BONES if b not in bi]:
+            raise ValueError(f"hair needs the bones {missing}")
+        vb = np.asarray(weights).argmax(1)
+        jh = np.asarray(joints[bi["head"]], np.float64)
+        head = vb == bi["head"]
+        up = vertices[head & (vertices[:, 1] > jh[1])]
+        if len(up) < 20:
+            raise ValueError("the body has no head to grow hair on")
+        h_head = float(up[:, 1].max() - jh[1])
+        cx, cz = 0.5 * (up[:, 0].min() + up[:, 0].max()), 0.5 * (up[:, 2].min() + up[:, 2].max())
+        centre = np.array([cx, jh[1] + 0.55 * h_head, cz])
+        radius = 0.5 * float(up[:, 2].max() - up[:, 2].min())
+        half_x = 0.5 * float(up[:, 0].max() - up[:, 0].min()) + 0.01
+        normals = vertex_normals(vertices, np.asarray(faces, np.int64))
+        near = np.isin(vb, [bi[b] for b in _COLLIDE_BONES])
+        return _Body(vertices, faces, weights, normals, vb, bi, jh, up, h_head, cx, cz, centre, radius, half_x,
+                     near, np.flatnonzero(near), cKDTree(vertices[near]))  # fmt: skip
+
+    def skin(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The nearest skin vertex (of ``near``) to each point of ``p`` (N, 3): position, normal, index."""
+        i = self.near_idx[self.tree.query(p)[1]]
+        return self.vertices[i], self.normals[i], i
+
+
+def _roots(body: _Body, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) roots and their (N, 3) skin normals: area-weighted points of the scalp faces above
+    the hairline."""
+    vertices, faces, jh, h_head, bi, vb = body.vertices, body.faces, body.jh, body.h_head, body.bi, body.vb
     tri = vertices[faces]
     fc = tri.mean(1)
     back = rng.uniform(-0.35, 0.1)
     front = rng.uniform(0.72, 0.76)  # at or above the painted cap's front (0.72), which fills in
     # Front and back about the vertical through the head joint (the face's centre would count the
     # chin and throat as "back", where the hairline is lowest).
-    fh = (fc[:, 2] - jh[2]) / np.maximum(np.hypot(fc[:, 0] - cx, fc[:, 2] - jh[2]), 1e-9)  # +1 front, -1 back
+    fh = (fc[:, 2] - jh[2]) / np.maximum(np.hypot(fc[:, 0] - body.cx, fc[:, 2] - jh[2]), 1e-9)  # +1 front, -1 back
     hairline = jh[1] + h_head * (0.45 + (front - back) / 2 * fh + (back + front - 0.9) / 2 * fh**2)
     scalp = np.isin(vb[faces], [bi["head"], bi["neck"]]).all(1) & (fc[:, 1] > hairline)
     scalp &= (fc[:, 2] < jh[2]) | (fc[:, 1] > jh[1] + 0.3 * h_head)  # never the throat or chin
@@ -226,91 +290,125 @@ def build_hair(
     r1, r2 = np.sqrt(rng.uniform(size=NUM_STRANDS)), rng.uniform(size=NUM_STRANDS)
     bary = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], 1)
     roots = np.einsum("nk,nkc->nc", bary, tri[f])
-    root_n = _unit(np.einsum("nk,nkc->nc", bary, normals[faces[f]]))
+    root_n = _unit(np.einsum("nk,nkc->nc", bary, body.normals[faces[f]]))
+    return roots, root_n
 
-    # Growth.
-    down = np.array([0.0, -1.0, 0.0])
-    layer = rng.uniform(size=NUM_STRANDS) ** 0.7  # more strands in the outer layers
-    height = _SKIN_GAP + spec.volume * layer
-    crown = centre + radius * _unit(np.array([0.0, 0.75, -0.65]))
-    part_x = cx + rng.uniform(-0.6, 0.6) * radius * (rng.uniform() < 0.7)
-    # The tie (tied hair) on the back of the head: the skin point in that direction, raised by the
-    # hair's volume.
-    aim = _unit(np.array([0.0, rng.uniform(-0.2, 0.3), -1.0]))
-    on_ray = up[np.argmax(_unit(up - centre) @ aim)]
-    tie = on_ray + (_SKIN_GAP + spec.volume + 0.005) * aim
-    tail_dir = _unit(np.array([0.0, -1.0, -rng.uniform(0.1, 0.5)]))
-    if spec.style == "tied":
-        path_len = 2.0 * math.pi * radius * 0.6 + spec.length  # at most: over the head, then the tail
-    else:
-        path_len = spec.length
-    step = path_len / _DENSE
-    pos = roots + _SKIN_GAP * root_n
-    dirn = np.zeros_like(pos)
-    attached = np.ones(NUM_STRANDS, bool)
-    tail = np.zeros(NUM_STRANDS, bool)  # tied: in the ponytail
-    tail_start = np.zeros(NUM_STRANDS)
-    spread = rng.normal(size=(NUM_STRANDS, 3)) * 0.35
-    spread -= (spread @ tail_dir)[:, None] * tail_dir
-    s = np.zeros(NUM_STRANDS)
-    path = [pos.copy()]
-    anchor = np.empty((_DENSE + 1, NUM_STRANDS), np.int64)  # the skin vertex each point lies over
-    anchor[0] = skin(pos)[2]
-    hang = np.zeros((_DENSE + 1, NUM_STRANDS))  # length hanging off the scalp (loose or in the tail)
-    let_go = anchor[0].copy()  # the skin vertex under the last point on the scalp
-    for k in range(_DENSE):
-        v, n, _ = skin(pos)
-        if spec.style in ("short", "curly"):
-            g = _unit(pos - crown) + 0.4 * down
-        elif spec.style == "long":  # from the parting, sideways and back off the face, then down
-            side = np.sign(pos[:, 0] - part_x)[:, None] * np.array([1.0, 0.0, 0.0])
-            fr = np.clip((pos[:, 2] - cz) / radius, 0.0, 1.0)[:, None]
-            g = (0.6 + 1.5 * fr) * side + (1.2 - 0.6 * fr) * down + (0.4 + 1.2 * fr) * np.array([0.0, 0.0, -1.0])
-        else:
-            g = tie - pos
-        t = g - (g * n).sum(1, keepdims=True) * n
-        t = _unit(t, dirn if k else _unit(g))
-        free = ~attached
-        if free.any():  # hanging: towards gravity, with the inertia of the last step
-            t[free] = _unit(0.5 * dirn[free] + down)
-        new = pos + step * t
+
+_DOWN = np.array([0.0, -1.0, 0.0])
+
+
+class _Growth:
+    """The growth of every strand (module docstring), ``_DENSE`` steps of one length.
+
+    After :meth:`run`: ``path`` the (N, 3) points of each step, ``anchor`` (D + 1, N) the skin
+    vertex each point lies over, ``hang`` (D + 1, N) the length hanging off the scalp (loose or in
+    the tail), ``let_go`` (N,) the skin vertex under the last point on the scalp.
+    """
+
+    def __init__(self, body: _Body, roots: np.ndarray, root_n: np.ndarray, spec: HairSpec,
+                 rng: np.random.Generator) -> None:
+        self.body, self.spec = body, spec
+        layer = rng.uniform(size=NUM_STRANDS) ** 0.7  # more strands in the outer layers
+        self.height = _SKIN_GAP + spec.volume * layer
+        self.crown = body.centre + body.radius * _unit(np.array([0.0, 0.75, -0.65]))
+        self.part_x = body.cx + rng.uniform(-0.6, 0.6) * body.radius * (rng.uniform() < 0.7)
+        # The tie (tied hair) on the back of the head: the skin point in that direction, raised by the
+        # hair's volume.
+        self.aim = _unit(np.array([0.0, rng.uniform(-0.2, 0.3), -1.0]))
+        on_ray = body.up[np.argmax(_unit(body.up - body.centre) @ self.aim)]
+        self.tie = on_ray + (_SKIN_GAP + spec.volume + 0.005) * self.aim
+        self.tail_dir = _unit(np.array([0.0, -1.0, -rng.uniform(0.1, 0.5)]))
         if spec.style == "tied":
-            at_tie = ~tail & (np.linalg.norm(new - tie, axis=1) < 0.025)
+            path_len = 2.0 * math.pi * body.radius * 0.6 + spec.length  # at most: over the head, then the tail
+        else:
+            path_len = spec.length
+        self.step = path_len / _DENSE
+        self.pos = roots + _SKIN_GAP * root_n
+        self.dirn = np.zeros_like(self.pos)
+        self.attached = np.ones(NUM_STRANDS, bool)
+        self.tail = np.zeros(NUM_STRANDS, bool)  # tied: in the ponytail
+        self.tail_start = np.zeros(NUM_STRANDS)
+        spread = rng.normal(size=(NUM_STRANDS, 3)) * 0.35
+        self.spread = spread - (spread @ self.tail_dir)[:, None] * self.tail_dir
+        self.s = np.zeros(NUM_STRANDS)
+        self.path = [self.pos.copy()]
+        self.anchor = np.empty((_DENSE + 1, NUM_STRANDS), np.int64)
+        self.anchor[0] = body.skin(self.pos)[2]
+        self.hang = np.zeros((_DENSE + 1, NUM_STRANDS))
+        self.let_go = self.anchor[0].copy()
+
+    def run(self) -> None:
+        for k in range(_DENSE):
+            self._advance(k, self.pos + self.step * self._direction(k))
+
+    def _direction(self, k: int) -> np.ndarray:
+        """(N, 3) unit step directions: the style's comb on the skin's tangent plane; hanging
+        strands towards gravity, with the inertia of the last step."""
+        body, spec, pos = self.body, self.spec, self.pos
+        _, n, _ = body.skin(pos)
+        if spec.style in ("short", "curly"):
+            g = _unit(pos - self.crown) + 0.4 * _DOWN
+        elif spec.style == "long":  # from the parting, sideways and back off the face, then down
+            side = np.sign(pos[:, 0] - self.part_x)[:, None] * np.array([1.0, 0.0, 0.0])
+            fr = np.clip((pos[:, 2] - body.cz) / body.radius, 0.0, 1.0)[:, None]
+            g = (0.6 + 1.5 * fr) * side + (1.2 - 0.6 * fr) * _DOWN + (0.4 + 1.2 * fr) * np.array([0.0, 0.0, -1.0])
+        else:
+            g = self.tie - pos
+        t = g - (g * n).sum(1, keepdims=True) * n
+        t = _unit(t, self.dirn if k else _unit(g))
+        free = ~self.attached
+        if free.any():
+            t[free] = _unit(0.5 * self.dirn[free] + _DOWN)
+        return t
+
+    def _advance(self, k: int, new: np.ndarray) -> None:
+        """Step ``k`` to the points ``new``: the ponytail gathered at the tie, strands held at their
+        layer over the skin, long hair let go of the head."""
+        body, spec, pos, s, step = self.body, self.spec, self.pos, self.s, self.step
+        if spec.style == "tied":
+            tail, tail_start = self.tail, self.tail_start
+            at_tie = ~tail & (np.linalg.norm(new - self.tie, axis=1) < 0.025)
             tail |= at_tie
             tail_start[at_tie] = s[at_tie]
             d = np.maximum(s + step - tail_start, 0.0)[:, None]
             out_d = 0.04 * (1.0 - np.exp(-d / 0.03))  # first away from the head, then down
-            fan = tie + out_d * aim + (d - out_d) * tail_dir + np.minimum(0.012 + 0.12 * d, 0.04) * spread
+            fan = self.tie + out_d * self.aim + (d - out_d) * self.tail_dir + np.minimum(0.012 + 0.12 * d, 0.04) * self.spread
             new = np.where(tail[:, None], fan, new)
             done = tail & (s - tail_start >= spec.length)
             new[done] = pos[done]
-        v2, n2, i2 = skin(new)
+        v2, n2, i2 = body.skin(new)
         h = ((new - v2) * n2).sum(1)
         ramp = np.minimum(1.0, (s + step) / 0.02)  # strands rise from the scalp to their layer
+        height = self.height
         target = _SKIN_GAP + (height - _SKIN_GAP) * ramp
-        snap = attached & ~tail
+        snap = self.attached & ~self.tail
         new[snap] += ((target - h)[snap])[:, None] * n2[snap]
         low = ~snap & (h < _SKIN_GAP + 0.5 * (height - _SKIN_GAP))
         new[low] += ((_SKIN_GAP + 0.5 * (height - _SKIN_GAP) - h)[low])[:, None] * n2[low]
         if spec.style == "long":
             # Leave the head where it curves away below, or below the ears, but not over the face.
-            beside = new[:, 2] - cz < 0.3 * radius
-            attached &= ~(beside & ((n2[:, 1] < -0.1) | (new[:, 1] < jh[1] + 0.25 * h_head)))
+            cx, cz, jh, h_head = body.cx, body.cz, body.jh, body.h_head
+            beside = new[:, 2] - cz < 0.3 * body.radius
+            self.attached &= ~(beside & ((n2[:, 1] < -0.1) | (new[:, 1] < jh[1] + 0.25 * h_head)))
             # Hanging hair stays out of the face: pushed sideways out of the box in front of it.
-            face = ~attached & (new[:, 2] > cz) & (np.abs(new[:, 0] - cx) < half_x) & (new[:, 1] > jh[1] - 0.1 * h_head)
-            new[face, 0] = cx + np.where(new[face, 0] >= cx, 1.0, -1.0) * half_x
+            face = ~self.attached & (new[:, 2] > cz) & (np.abs(new[:, 0] - cx) < body.half_x) & (new[:, 1] > jh[1] - 0.1 * h_head)
+            new[face, 0] = cx + np.where(new[face, 0] >= cx, 1.0, -1.0) * body.half_x
         moved = np.linalg.norm(new - pos, axis=1)
-        dirn = _unit(new - pos, dirn)
-        s += moved
-        pos = new
-        path.append(pos.copy())
-        anchor[k + 1] = i2
-        on_scalp = attached & ~tail
-        let_go[on_scalp] = i2[on_scalp]
-        hang[k + 1] = np.where(on_scalp, 0.0, hang[k] + moved)
-    dense = np.stack(path, 1)  # (N, D + 1, 3)
+        self.dirn = _unit(new - pos, self.dirn)
+        self.s = s + moved
+        self.pos = new
+        self.path.append(new.copy())
+        self.anchor[k + 1] = i2
+        on_scalp = self.attached & ~self.tail
+        self.let_go[on_scalp] = i2[on_scalp]
+        self.hang[k + 1] = np.where(on_scalp, 0.0, self.hang[k] + moved)
 
-    # Resample each strand to POINTS points evenly along its length.
+
+def _resample(growth: _Growth) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each strand resampled to ``POINTS`` points evenly along its length: the points (N, P, 3), the
+    skin vertex under each (N, P), the length hanging off the scalp there (N, P), the arc length
+    (N, P) and the strand's length (N, 1)."""
+    dense = np.stack(growth.path, 1)  # (N, D + 1, 3)
     seg = np.linalg.norm(np.diff(dense, axis=1), axis=2)
     arc = np.concatenate([np.zeros((NUM_STRANDS, 1)), np.cumsum(seg, 1)], 1)
     total = np.maximum(arc[:, -1:], 1e-9)
@@ -321,47 +419,48 @@ def build_hair(
     for i in range(NUM_STRANDS):
         for c in range(3):
             pts[i, :, c] = np.interp(u[i], arc[i], dense[i, :, c])
-        nearest[i] = anchor[:, i][np.clip(np.searchsorted(arc[i], u[i]), 0, _DENSE)]
-        hanging[i] = np.interp(u[i], arc[i], hang[:, i])
-    frac = u / total  # 0 at the root, 1 at the tip
-    tang = _unit(np.gradient(pts, axis=1))
-    if spec.curl > 0:
-        e1 = _unit(np.cross(tang, np.array([0.0, 1.0, 0.0])), np.array([1.0, 0.0, 0.0]))
-        e2 = np.cross(tang, e1)
-        period = rng.uniform(0.025, 0.045, (NUM_STRANDS, 1))
-        phi = 2 * math.pi * u / period + rng.uniform(0, 2 * math.pi, (NUM_STRANDS, 1))
-        amp = spec.curl * np.minimum(1.0, frac * total / 0.03)[..., None]
-        pts = pts + amp * (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)
-        tang = _unit(np.gradient(pts, axis=1))
+        nearest[i] = growth.anchor[:, i][np.clip(np.searchsorted(arc[i], u[i]), 0, _DENSE)]
+        hanging[i] = np.interp(u[i], arc[i], growth.hang[:, i])
+    return pts, nearest, hanging, u, total
 
-    # Every point off the skin (a curl can wind a strand into it, resampling can cut a corner).
-    flat = pts.reshape(-1, 3)
-    v, n, _ = skin(flat)
-    flat += np.maximum(_SKIN_GAP - ((flat - v) * n).sum(1), 0.0)[:, None] * n
-    pts = flat.reshape(pts.shape)
 
-    # Ribbons facing away from the skin under them.
-    out = normals[nearest]
-    across = _unit(np.cross(tang, out), _unit(np.cross(tang, np.array([0.0, 0.0, 1.0]))))
-    half = 0.5 * spec.width * (1.0 - 0.6 * frac)[..., None] * rng.uniform(0.7, 1.3, (NUM_STRANDS, 1, 1))
-    ribbon = np.stack([pts - half * across, pts + half * across], 2).reshape(-1, 3)
+def _curl(pts: np.ndarray, tang: np.ndarray, u: np.ndarray, frac: np.ndarray, total: np.ndarray,
+          spec: HairSpec, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The strands wound into helices of radius ``spec.curl`` (rising from the root over 3 cm), and
+    their new tangents."""
+    e1 = _unit(np.cross(tang, np.array([0.0, 1.0, 0.0])), np.array([1.0, 0.0, 0.0]))
+    e2 = np.cross(tang, e1)
+    period = rng.uniform(0.025, 0.045, (NUM_STRANDS, 1))
+    phi = 2 * math.pi * u / period + rng.uniform(0, 2 * math.pi, (NUM_STRANDS, 1))
+    amp = spec.curl * np.minimum(1.0, frac * total / 0.03)[..., None]
+    pts = pts + amp * (np.cos(phi)[..., None] * e1 + np.sin(phi)[..., None] * e2)
+    return pts, _unit(np.gradient(pts, axis=1))
 
-    # Colour: per strand and along it.
+
+def _colours(spec: HairSpec, frac: np.ndarray, total: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(H, 3) linear RGB per ribbon vertex: the hair's colour varied per strand and along it (darker
+    roots, lighter or darker tips)."""
     base = np.asarray(spec.colour, np.float64)
     strand = np.exp(rng.normal(0.0, 0.12, (NUM_STRANDS, 1)))
     tip = rng.uniform(-0.1, 0.25)
     along = (0.8 + 0.2 * np.minimum(1.0, frac * total / 0.01)) * (1.0 + tip * frac)
     colours = np.clip(base[None, None] * (strand * along)[..., None], 0.0, 1.0)
-    colours = np.repeat(colours, 2, axis=1).reshape(-1, 3)
+    return np.repeat(colours, 2, axis=1).reshape(-1, 3)
 
-    # Weights: the skin's under each point, smoothed along the strand (roots keep their own). Hair
-    # hanging off the scalp (a ponytail, long hair below the head) goes over from the weights where
-    # it left the scalp to those of the nearest skin below the head within 15 cm, so that it hangs
-    # from the neck and shoulders instead of turning stiffly with the head.
+
+def _strand_weights(body: _Body, pts: np.ndarray, nearest: np.ndarray, hanging: np.ndarray,
+                    let_go: np.ndarray) -> np.ndarray:
+    """(H, J) LBS weights per ribbon vertex: the skin's under each point, smoothed along the strand
+    (roots keep their own). Hair hanging off the scalp (a ponytail, long hair below the head) goes
+    over from the weights where it left the scalp to those of the nearest skin below the head within
+    15 cm, so that it hangs from the neck and shoulders instead of turning stiffly with the head."""
+    from scipy.spatial import cKDTree
+
+    weights = body.weights
     w = np.asarray(weights, np.float64)[nearest]  # (N, P, J)
     if (hanging > 0).any():
-        body_idx = np.flatnonzero(near & (vb != bi["head"]))
-        below = body_idx[cKDTree(vertices[body_idx]).query(pts.reshape(-1, 3))[1]].reshape(NUM_STRANDS, POINTS)
+        body_idx = np.flatnonzero(body.near & (body.vb != body.bi["head"]))
+        below = body_idx[cKDTree(body.vertices[body_idx]).query(pts.reshape(-1, 3))[1]].reshape(NUM_STRANDS, POINTS)
         a = np.clip(hanging / 0.15, 0.0, 1.0)[..., None]
         w = np.where(hanging[..., None] > 0, (1 - a) * np.asarray(weights, np.float64)[let_go][:, None] + a * np.asarray(weights, np.float64)[below], w)
     sm = w.copy()
@@ -370,11 +469,7 @@ def build_hair(
         sm[:, -1] = 0.5 * (sm[:, -2] + sm[:, -1])
         sm[:, 0] = w[:, 0]
     sm /= sm.sum(-1, keepdims=True)
-    weights_out = np.repeat(sm, 2, axis=1).reshape(-1, sm.shape[-1])
-    return HairMesh(
-        vertices=ribbon.astype(np.float32), faces=hair_faces(), colours=colours.astype(np.float32),
-        weights=weights_out.astype(np.float32),
-    )  # fmt: skip
+    return np.repeat(sm, 2, axis=1).reshape(-1, sm.shape[-1])
 
 
 def pose_hair(hair: HairMesh, transforms: Any) -> np.ndarray:

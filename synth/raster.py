@@ -1,4 +1,9 @@
-"""Which pixel centres lie inside 2D triangles: shared by texture baking and label validation."""
+"""Which pixel centres lie inside 2D triangles: shared by texture baking and label validation.
+
+:func:`rasterise` works in pixel units; :func:`rasterise_uv` finds the texels of a square texture
+inside UV triangles (texture painting, scan baking and the texture transfer of the ``blsm``
+pipeline).
+"""
 
 from __future__ import annotations
 
@@ -49,3 +54,26 @@ def rasterise(
     sel = where[pixel]
     b1, b2 = b1[sel], b2[sel]
     return pixel, fid[sel], np.stack([1 - b1 - b2, b1, b2], 1)
+
+
+def uv_triangles(uv: np.ndarray, faces_uv: np.ndarray, size: int) -> np.ndarray:
+    """(F, 3, 2) UV triangles in the texel units of :func:`rasterise` for a ``size x size`` texture:
+    texel ``(x, y)`` has its centre at ``(x, y)``; ``uv`` (U, 2) is v up (row 0 of the image is
+    v = 1)."""
+    return np.stack([uv[faces_uv, 0] * size - 0.5, (1 - uv[faces_uv, 1]) * size - 0.5], -1)
+
+
+def rasterise_uv(uv: np.ndarray, faces_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The texel centres of a ``size x size`` texture inside UV triangles (later faces win).
+
+    Args:
+        uv: (U, 2) texture coordinates, v up (row 0 of the image is v = 1).
+        faces_uv: (F, 3) indices into ``uv``.
+        size: the texture's width and height, texels.
+
+    Returns:
+        ``texels`` (N,) flat indices into the ``size x size`` image, ``face`` (N,) and the
+        barycentric coordinates there, ``bary`` (N, 3). A texel centre on a triangle's edge (within
+        1e-9) is inside it.
+    """
+    return rasterise(uv_triangles(uv, faces_uv, size), size, size, eps=1e-9)

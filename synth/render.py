@@ -21,7 +21,6 @@ face indices stay those of the person's mesh.
 from __future__ import annotations
 
 import functools
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,8 +28,7 @@ import numpy as np
 
 from blsm.camera import Camera
 from blsm.mesh import face_incidence, vertex_normals
-from blsm.mitsuba_util import load_mitsuba, resolve_variant, sensor_params, to_world_matrix
-
+from blsm.mitsuba_util import env_rotation, load_mitsuba, perspective_sensor, resolve_variant, set_camera
 
 # Where an unused person slot's vertices all go (:meth:`PeopleRenderer._hide`): under the ground
 # y = 0 that every person stands on and every camera looks down on or across.
@@ -234,84 +232,19 @@ class PeopleRenderer:
         """
         self.variant = resolve_variant(variant)
         self.instanced = instanced
-        mi = self.mi = load_mitsuba(self.variant)
+        self.mi = load_mitsuba(self.variant)
         self.width, self.height = width, height
         self.meshes = meshes
         self.backplate = backplate
         self.hair = hair
-        sensor_common = {
-            "type": "perspective",
-            "fov": 40.0,
-            "fov_axis": "x",
-            "near_clip": 0.01,
-            "far_clip": 1000.0,
-        }
         self.denoiser = None
-        path = {"type": "path", "max_depth": max_depth, "hide_emitters": backplate}
         if denoise:
             from synth.denoise import shared_denoiser
 
             self.denoiser = shared_denoiser(denoise_threads, denoise_quality)
-            # The path tracer nested in the AOV integrator: colour, albedo and normal of the same
-            # samples (film channels R, G, B, A, albedo RGB, normal XYZ).
-            path = {"type": "aov", "aovs": "alb:albedo,nn:sh_normal", "image": path}
-        scene: dict[str, Any] = {
-            "type": "scene",
-            "integrator": path,
-            "sensor": {
-                **sensor_common,
-                "sampler": {"type": sampler, "sample_count": 16},
-                "film": {
-                    "type": "hdrfilm",
-                    "width": width,
-                    "height": height,
-                    "pixel_format": "rgba",
-                    # A box filter keeps each sample in its own pixel: no splatting races between
-                    # threads, so the image is bit-reproducible (and 4x faster than gaussian).
-                    "rfilter": {"type": "box"},
-                },
-            },
-            "label_sensor": {
-                **sensor_common,
-                "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
-                "film": {
-                    "type": "hdrfilm",
-                    "width": width,
-                    "height": height,
-                    "pixel_format": "rgb",
-                    "rfilter": {"type": "box"},
-                },
-            },
-            "env": {
-                "type": "envmap",
-                "bitmap": mi.Bitmap(np.full((*env_shape, 3), 0.5, dtype=np.float32)),
-            },
-        }
+        scene = self._scene_dict(env_shape, max_depth, sampler)
         for i, (m, tshape) in enumerate(zip(meshes, texture_shapes)):
-            props = mi.Properties()
-            props["bsdf"] = mi.load_dict(
-                {
-                    "type": "diffuse",
-                    "reflectance": {
-                        "type": "bitmap",
-                        "bitmap": mi.Bitmap(np.full((*tshape, 3), 0.5, dtype=np.float32)),
-                        "raw": True,
-                        "filter_type": "bilinear",
-                    },
-                }
-            )
-            mesh = mi.Mesh(
-                f"person_{i}", len(m.split_vertex), len(m.split_faces), props=props,
-                has_vertex_normals=True, has_vertex_texcoords=True,
-            )  # fmt: skip
-            p = mi.traverse(mesh)
-            p["vertex_positions"] = mi.Float(np.zeros(3 * len(m.split_vertex), dtype=np.float32))
-            p["faces"] = mi.UInt32(m.split_faces.reshape(-1))
-            p["vertex_texcoords"] = mi.Float(m.texcoords.reshape(-1))
-            p.update()
-            shapes = {f"person_{i}": mesh}
-            if hair:
-                shapes[f"hair_{i}"] = self._hair_mesh(i)
+            shapes = self._person_shapes(i, m, tshape)
             # Each person is a shape group seen through one identity instance. Embree then gives
             # the person its own BVH, which the group rebuilds after each vertex update at Embree's
             # default quality instead of the scene's RTC_BUILD_QUALITY_HIGH. `make bench` measured
@@ -324,6 +257,7 @@ class PeopleRenderer:
                 scene[f"instance_{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{i}"}}
             else:
                 scene.update(shapes)
+        mi = self.mi
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
         self.environment = self.scene.environment()  # the envmap (synth.ground.emitter_backdrop)
@@ -339,6 +273,56 @@ class PeopleRenderer:
         self._hidden: set[int] = set()  # slots collapsed out of sight (:meth:`_hide`)
         self._textures: dict[int, np.ndarray] = {}  # the texture array each slot shows now
         self._env: np.ndarray | None = None  # the environment array uploaded now
+
+    def _scene_dict(self, env_shape: tuple[int, int], max_depth: int, sampler: str) -> dict[str, Any]:
+        """The scene without its people: the integrator, the two sensors and the environment."""
+        path = {"type": "path", "max_depth": max_depth, "hide_emitters": self.backplate}
+        if self.denoiser is not None:
+            # The path tracer nested in the AOV integrator: colour, albedo and normal of the same
+            # samples (film channels R, G, B, A, albedo RGB, normal XYZ).
+            path = {"type": "aov", "aovs": "alb:albedo,nn:sh_normal", "image": path}
+        w, h = self.width, self.height
+        return {
+            "type": "scene",
+            "integrator": path,
+            "sensor": perspective_sensor(w, h, {"type": sampler, "sample_count": 16}, "rgba"),
+            # One sample at every pixel centre: a non-jittered stratified sampler.
+            "label_sensor": perspective_sensor(w, h, {"type": "stratified", "sample_count": 1, "jitter": False}, "rgb"),
+            "env": {
+                "type": "envmap",
+                "bitmap": self.mi.Bitmap(np.full((*env_shape, 3), 0.5, dtype=np.float32)),
+            },
+        }
+
+    def _person_shapes(self, i: int, m: RenderMesh, tshape: tuple[int, int]) -> dict[str, Any]:
+        """Slot ``i``'s shapes: the person's mesh (diffuse, textured; placeholder vertices and
+        texels until :meth:`render`) and, with hair, the hair's."""
+        mi = self.mi
+        props = mi.Properties()
+        props["bsdf"] = mi.load_dict(
+            {
+                "type": "diffuse",
+                "reflectance": {
+                    "type": "bitmap",
+                    "bitmap": mi.Bitmap(np.full((*tshape, 3), 0.5, dtype=np.float32)),
+                    "raw": True,
+                    "filter_type": "bilinear",
+                },
+            }
+        )
+        mesh = mi.Mesh(
+            f"person_{i}", len(m.split_vertex), len(m.split_faces), props=props,
+            has_vertex_normals=True, has_vertex_texcoords=True,
+        )  # fmt: skip
+        p = mi.traverse(mesh)
+        p["vertex_positions"] = mi.Float(np.zeros(3 * len(m.split_vertex), dtype=np.float32))
+        p["faces"] = mi.UInt32(m.split_faces.reshape(-1))
+        p["vertex_texcoords"] = mi.Float(m.texcoords.reshape(-1))
+        p.update()
+        shapes = {f"person_{i}": mesh}
+        if self.hair:
+            shapes[f"hair_{i}"] = self._hair_mesh(i)
+        return shapes
 
     def _hide(self, i: int) -> None:
         """Collapse slot ``i``'s meshes (person and hair) to one point under the ground: zero-area
@@ -471,7 +455,7 @@ class PeopleRenderer:
         face[~hit] = -1
         return Frame(rgb=rgb.astype(np.float32), alpha=alpha, hit=hit, position=position, face=face)
 
-    def _assign(self, vertices, textures, camera, env, env_rotation, env_scale, hair=None) -> None:
+    def _assign(self, vertices, textures, camera, env, env_rotation_rad, env_scale, hair=None) -> None:
         mi, p = self.mi, self.params
         import drjit as dr
 
@@ -503,13 +487,9 @@ class PeopleRenderer:
             p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
             self._env = env
         p["env.scale"] = opaque(env_scale)
-        c, s = math.cos(env_rotation), math.sin(env_rotation)
-        rot = np.array([[c, 0, s, 0], [0, 1, 0, 0], [-s, 0, c, 0], [0, 0, 0, 1]], dtype=np.float64)
+        rot = np.eye(4)
+        rot[:3, :3] = env_rotation(env_rotation_rad)
         p["env.to_world"] = mi.AffineTransform4f(rot)
-        x_fov, ppx, ppy = sensor_params(camera)
         for name in ("sensor", "label_sensor"):
-            p[f"{name}.to_world"] = mi.AffineTransform4f(to_world_matrix(camera))
-            p[f"{name}.x_fov"] = opaque(x_fov)
-            p[f"{name}.principal_point_offset_x"] = opaque(ppx)
-            p[f"{name}.principal_point_offset_y"] = opaque(ppy)
+            set_camera(mi, p, name, camera, opaque)
         p.update()

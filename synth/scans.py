@@ -161,12 +161,12 @@ def bake_vertex_colours(
     import xatlas
     from scipy import ndimage
 
-    from synth.textures import _rasterise
+    from synth.raster import rasterise_uv
 
     vmap, faces_uv, uv = xatlas.parametrize(np.asarray(vertices, np.float32), np.asarray(faces, np.uint32))
     faces_uv = faces_uv.astype(np.int64)
     corner = np.asarray(colours, np.float64)[vmap][faces_uv]  # (F, 3, 3) colour of each face corner
-    texels, face, bary = _rasterise(uv, faces_uv, size)[:3]
+    texels, face, bary = rasterise_uv(uv, faces_uv, size)
     image = np.zeros((size * size, 3))
     image[texels] = np.einsum("nk,nkc->nc", bary, corner[face])
     empty = np.ones(size * size, bool)

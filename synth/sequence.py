@@ -26,7 +26,7 @@ from its own random generator (:func:`sequence_rng`), in this order:
 4. **Camera and light.** A camera path (:mod:`synth.camera_paths`) that keeps
    ``CAMERA_CLEARANCE_M`` from every body at every frame (drawn again until it does), one
    background, exposure and environment rotation for the whole clip.
-5. **Frames.** Each frame is rendered and labelled as a single image is (:class:`synth.generate.SampleMaker`),
+5. **Frames.** Each frame is rendered and labelled as a single image is (:class:`synth.sample.SampleMaker`),
    plus the sequence's labels (docs/video.md): the camera-to-world transform and path, each
    person's ``track``, ``velocity_3d``, ``contact``, ``contact_velocity`` and ``in_view``. With
    ``sequence.motion_blur`` the image is the mean of sub-frame renders over the shutter (people and
@@ -42,13 +42,17 @@ contact with from motion capture: the region's keypoint (:data:`REGION_KEYPOINT`
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from synth.camera import outline_index
 from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
+
+if TYPE_CHECKING:
+    from synth.sample import Person
 
 CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
@@ -74,14 +78,6 @@ static camera, which frames everyone from outside (``camera.path.tries`` records
 PATH_TRIES = 20
 KNEE_RADIUS = 0.1
 """Metres: the knee region is the shank's vertices this close to the knee joint."""
-
-
-def move_person(p: dict[str, Any], d: np.ndarray) -> None:
-    """Translate a posed person (vertices, keypoints, joints, hair, root) by ``d`` (3,) metres."""
-    for k in ("vertices", "keypoints", "joints", "hair"):
-        if k in p:
-            p[k] = (p[k] + d).astype(np.float32)
-    p["transl"] = (p["transl"] + d).astype(np.float32)
 
 
 def sequence_rng(seed: int, sequence: int) -> np.random.Generator:
@@ -241,8 +237,35 @@ def place_tracks(
     return offsets
 
 
+@dataclass(eq=False)
+class Actor:
+    """One person of a sequence: a subject playing a window of a clip (module docstring, steps 1-3).
+
+    Attributes:
+        si: the subject's index among the worker's subjects.
+        posed: seconds from the clip window's start -> the person posed there (not placed).
+        frames: the ``T`` frames' posed people, placed by :meth:`SequenceMaker.make`.
+        regions: contact region -> the vertex indices of :func:`contact_regions`.
+        keypoints: (T + 2, K, 3) on the frame grid (one row before the first frame and one after
+            the last); ``region_vertices`` region -> (T + 2, n, 3) its vertices there.
+        lift: (T + 2,) metres each grid row is lifted by (grounding).
+        window: the clip window (the label's ``clip_window``).
+        offset: (3,) the placement's horizontal offset, metres (None before placement).
+    """
+
+    si: int
+    posed: Callable[[float], Person]
+    frames: list[Person]
+    regions: dict[str, np.ndarray]
+    keypoints: np.ndarray
+    region_vertices: dict[str, np.ndarray]
+    lift: np.ndarray
+    window: dict[str, Any]
+    offset: np.ndarray | None = None
+
+
 class SequenceMaker:
-    """Makes the frames of sequences with a worker's :class:`synth.generate.SampleMaker`."""
+    """Makes the frames of sequences with a worker's :class:`synth.sample.SampleMaker`."""
 
     def __init__(self, maker: Any) -> None:
         import torch
@@ -273,7 +296,7 @@ class SequenceMaker:
         )
 
     # -- people
-    def _person(self, rng: np.random.Generator) -> dict[str, Any]:
+    def _person(self, rng: np.random.Generator) -> Actor:
         """One person's clip, posed on the frame grid (module docstring, steps 1-2)."""
         from scipy.spatial.transform import Rotation
 
@@ -287,43 +310,40 @@ class SequenceMaker:
         start = win.at(0.0)[2]
         scale = None
 
-        def posed(tau: float) -> dict[str, Any]:
+        def posed(tau: float) -> Person:
             nonlocal scale
             x, orient, tr, q = win.at(tau)
             rel = tr - np.array([start[0], 0.0, start[2]])
             if scale is None:  # the subject's legs over the mean body's
                 probe = m.pose(si, x, np.zeros(3, np.float32), np.zeros(3, np.float32))
-                scale = self._leg(probe["rest_joints"]) / self.mean_leg
+                scale = self._leg(probe.rest_joints) / self.mean_leg
             world_orient = (turn * Rotation.from_rotvec(orient)).as_rotvec().astype(np.float32)
             p = m.pose(si, x, world_orient, (turn.apply(scale * rel)).astype(np.float32))
-            p["motion"] = {"source": "library", "clip": win.clip.name, "frame": round(float(q), 4),
-                           "time": round(float(q / win.clip.fps), 6)}  # fmt: skip
+            p.motion = {"source": "library", "clip": win.clip.name, "frame": round(float(q), 4),
+                        "time": round(float(q / win.clip.fps), 6)}  # fmt: skip
             return p
 
         grid = [posed(self.margin + k * self.h) for k in range(-1, self.T + 1)]  # k = -1 .. T
         first = grid[1]
-        vb = first["vertex_bones"]
-        if first["rig"]["parents"] is not None:
-            vb = vb[first["rig"]["parents"][:, 0]]
-        regions = contact_regions(m.model, vb, first["vertices"], first["keypoints"])
-        region_vertices = {r: np.stack([g["vertices"][idx] for g in grid]).astype(np.float64) for r, idx in regions.items()}
+        regions = contact_regions(m.model, first.vertex_bones, first.vertices, first.keypoints)
+        region_vertices = {r: np.stack([g.vertices[idx] for g in grid]).astype(np.float64) for r, idx in regions.items()}
         frames = grid[1:-1]
-        return {
-            "si": si, "posed": posed, "frames": frames, "regions": regions,
-            "keypoints": np.stack([g["keypoints"] for g in grid]).astype(np.float64),
-            "region_vertices": region_vertices,
-            "lift": self._lift(grid, region_vertices),
-            "window": {"clip": win.clip.name, "start_s": round(win.start + self.margin, 6), "yaw_deg": round(math.degrees(yaw), 4),
-                       "leg_scale": round(float(scale), 6)},
-        }  # fmt: skip
+        return Actor(
+            si=si, posed=posed, frames=frames, regions=regions,
+            keypoints=np.stack([g.keypoints for g in grid]).astype(np.float64),
+            region_vertices=region_vertices,
+            lift=self._lift(grid, region_vertices),
+            window={"clip": win.clip.name, "start_s": round(win.start + self.margin, 6), "yaw_deg": round(math.degrees(yaw), 4),
+                    "leg_scale": round(float(scale), 6)},
+        )  # fmt: skip
 
-    def _lift(self, grid: list[dict[str, Any]], region_vertices: dict[str, np.ndarray]) -> np.ndarray:
+    def _lift(self, grid: list[Person], region_vertices: dict[str, np.ndarray]) -> np.ndarray:
         """The height (m) each grid row is lifted by (module docstring, step 2): where a foot is still,
         its lowest point on the ground; between, interpolated; then smoothed, and raised where a
         body would go more than :data:`PENETRATION_M` into the ground."""
         from scipy.ndimage import gaussian_filter1d
 
-        lowest = np.array([float(g["vertices"][:, 1].min()) for g in grid])
+        lowest = np.array([float(g.vertices[:, 1].min()) for g in grid])
         heights, speeds = [], []
         for r in FEET:
             v = region_vertices[r]  # (N, n, 3), per grid row
@@ -353,31 +373,31 @@ class SequenceMaker:
         footprints = []
         for p in people:
             rows = []
-            for fr in p["frames"]:
-                v = m.shell(fr)
+            for fr in p.frames:
+                v = fr.shell()
                 idx = outline_index(v)
-                fr["outline"] = v[idx].astype(np.float32)
-                xz = fr["outline"][:, [0, 2]]
+                fr.outline = v[idx].astype(np.float32)
+                xz = fr.outline[:, [0, 2]]
                 c = 0.5 * (xz.min(0) + xz.max(0))
                 rows.append([c[0], c[1], float(np.linalg.norm(xz - c, axis=1).max())])
             footprints.append(np.array(rows))
         offsets = place_tracks(footprints, cfg.people.gap, rng)
         for p, o in zip(people, offsets, strict=False):
-            p["offset"] = np.array([o[0], 0.0, o[1]])
-            rows = p["offset"] + np.outer(p["lift"], [0.0, 1.0, 0.0])  # (T + 2, 3) per grid row
-            for f, fr in enumerate(p["frames"]):
-                move_person(fr, rows[f + 1])
-                fr["outline"] = (fr["outline"] + rows[f + 1]).astype(np.float32)
-            p["keypoints"] += rows[:, None]
-            for r in p["region_vertices"]:
-                p["region_vertices"][r] += rows[:, None]
+            p.offset = np.array([o[0], 0.0, o[1]])
+            rows = p.offset + np.outer(p.lift, [0.0, 1.0, 0.0])  # (T + 2, 3) per grid row
+            for f, fr in enumerate(p.frames):
+                fr.move(rows[f + 1])
+                fr.outline = (fr.outline + rows[f + 1]).astype(np.float32)
+            p.keypoints += rows[:, None]
+            for r in p.region_vertices:
+                p.region_vertices[r] += rows[:, None]
         step = max(1, T // 24)
         everyone = np.concatenate(
-            [p["frames"][f]["outline"] for p in people for f in [*range(0, T, step), T - 1]]
+            [p.frames[f].outline for p in people for f in [*range(0, T, step), T - 1]]
         )
         follow = Track(
             np.arange(T) / F,
-            np.array([0.5 * (fr["outline"].min(0) + fr["outline"].max(0)) for fr in people[0]["frames"]]),
+            np.array([0.5 * (fr.outline.min(0) + fr.outline.max(0)) for fr in people[0].frames]),
         )
         kind = choose_kind(self.cfg.cameras.weights(), rng)
         tries = 0
@@ -385,7 +405,7 @@ class SequenceMaker:
             tries += 1
             if tries > PATH_TRIES:  # a tripod framing everyone from outside them
                 kind = "static"
-            path = sample_path(kind, cfg.camera, self.cfg.cameras, everyone, people[0]["frames"][0]["outline"], follow,
+            path = sample_path(kind, cfg.camera, self.cfg.cameras, everyone, people[0].frames[0].outline, follow,
                                (T - 1) / F, rng)  # fmt: skip
             if tries > PATH_TRIES or self._clear(path, people):
                 break
@@ -393,32 +413,32 @@ class SequenceMaker:
         back = m.background(rng, path.at(0.0))
         return [self._frame(seq, f, people, path, back, rng) for f in range(T)]
 
-    def _clear(self, path: Any, people: list[dict[str, Any]]) -> bool:
+    def _clear(self, path: Any, people: list[Actor]) -> bool:
         """The camera keeps :data:`CAMERA_CLEARANCE_M` from every person's hull at every frame."""
         for f in range(self.T):
             cam = path.at(f / self.F)
             eye = -cam.R.T @ cam.t
             for p in people:
-                if np.linalg.norm(p["frames"][f]["outline"] - eye, axis=1).min() < CAMERA_CLEARANCE_M:
+                if np.linalg.norm(p.frames[f].outline - eye, axis=1).min() < CAMERA_CLEARANCE_M:
                     return False
         return True
 
-    def _labels(self, p: dict[str, Any], f: int) -> dict[str, Any]:
+    def _labels(self, p: Actor, f: int) -> dict[str, Any]:
         """Velocities and contact of person ``p`` at frame ``f`` (central differences on the grid)."""
         k = f + 1  # the frame's row on the grid (row 0 is k = -1)
-        kp = p["keypoints"]
+        kp = p.keypoints
         vel = (kp[k + 1] - kp[k - 1]) / (2 * self.h)
         c = self.cfg.contact
         touch, rule = {}, {}
         for r, kpi in zip(CONTACT_REGIONS, self.region_kp, strict=False):
-            rv = p["region_vertices"][r]
+            rv = p.region_vertices[r]
             speeds = np.linalg.norm(rv[k + 1] - rv[k - 1], axis=1) / (2 * self.h)
             touch[r] = contact(rv[k][:, 1], speeds, c.distance, c.speed) if len(rv[k]) else False
             rule[r] = bool(np.linalg.norm(vel[kpi]) <= c.velocity_rule)
         return {"velocity_3d": vel, "contact": touch, "contact_velocity": rule}
 
     def _frame(
-        self, seq: int, f: int, people: list[dict[str, Any]], path: Any, back: Any, rng: np.random.Generator
+        self, seq: int, f: int, people: list[Actor], path: Any, back: Any, rng: np.random.Generator
     ) -> dict[str, bytes]:
         from synth.format import json_round as _l
 
@@ -426,7 +446,7 @@ class SequenceMaker:
         index = seq * T + f
         t = f / F
         camera = path.at(t)
-        frame_people = [p["frames"][f] for p in people]
+        frame_people = [p.frames[f] for p in people]
         cam_info = {**path.base, "view": "normal", "truncated": False, "truncation": 0.0, "truncation_side": "",
                     "focal_mm": round(focal_mm(camera), 6), "path": path.kind}  # fmt: skip
         blur = self.cfg.motion_blur
@@ -454,16 +474,16 @@ class SequenceMaker:
             sl = self._labels(p, f)
             extra_people.append({"track": i, "velocity_3d": _l(sl["velocity_3d"]), "contact": sl["contact"],
                                  "contact_velocity": sl["contact_velocity"], "in_view": bool(lp["pixels"] > 0),
-                                 "clip_window": p["window"]})  # fmt: skip
+                                 "clip_window": p.window})  # fmt: skip
         return m.encode(index, camera, cam_info, back, frame_people, frame, labels, extra, extra_people)
 
-    def _posed_at(self, p: dict[str, Any], t: float) -> dict[str, Any]:
+    def _posed_at(self, p: Actor, t: float) -> Person:
         """Person ``p`` posed at time ``t`` of the sequence (a motion-blur sub-frame), placed."""
-        q = p["posed"](self.margin + t)
-        lift = float(np.interp(t, (np.arange(len(p["lift"])) - 1) * self.h, p["lift"]))
-        move_person(q, p["offset"] + np.array([0.0, lift, 0.0]))
-        v = self.m.shell(q)
-        q["outline"] = v[outline_index(v)].astype(np.float32)
+        q = p.posed(self.margin + t)
+        lift = float(np.interp(t, (np.arange(len(p.lift)) - 1) * self.h, p.lift))
+        q.move(p.offset + np.array([0.0, lift, 0.0]))
+        v = q.shell()
+        q.outline = v[outline_index(v)].astype(np.float32)
         return q
 
 

@@ -276,14 +276,23 @@ class ShardWriter:
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ValueError(f"{man_path}: unreadable manifest ({exc})") from None
 
-    def pending(self, resume: bool) -> tuple[list[int], dict[str, Any], list[dict[str, Any]]]:
+    def pending(
+        self, resume: bool, stop_after: int | None = None
+    ) -> tuple[list[int], dict[str, Any], list[dict[str, Any]]]:
         """The shards still to make, the finished ones' manifest entries, and the samples the
         manifest lists as skipped in those finished shards.
 
         Without ``resume`` the folder must not hold a dataset yet. With it, the manifest must
         describe the same run (seed, count, shard size, config); a shard is kept only when its file
         exists and its SHA-256 matches.
+
+        ``stop_after``: make only the first this many of the shards still to make (the one place
+        a run is stopped early: it simulates an interruption in tests).
         """
+        todo, done, skipped = self._pending(resume)
+        return (todo if stop_after is None else todo[:stop_after]), done, skipped
+
+    def _pending(self, resume: bool) -> tuple[list[int], dict[str, Any], list[dict[str, Any]]]:
         man_path, mine = self.manifest_path, self.shards()
         if not resume:
             if man_path.exists() or any((self.out / shard_name(x)).exists() for x in mine):
@@ -326,19 +335,19 @@ class ShardWriter:
                 the reason, in the manifest's ``skipped``.
             resume: continue a previous run into the same folder.
             on_shard: optional ``(shard, samples_in_it)`` callback after each shard (progress).
-            stop_after: stop after this many shards (simulates an interruption in tests).
+            stop_after: stop after this many shards (:meth:`pending`).
             plan: what :meth:`pending` returned, when the caller checked the folder before
-                starting (``resume`` is then not looked at).
+                starting (``resume`` and ``stop_after`` are then not looked at; give neither).
         """
+        if plan is not None and (resume or stop_after is not None):
+            raise ValueError("give ShardWriter.run a plan, or resume and stop_after for pending(), not both")
         try:
             self.out.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise WriteError.of(self.out, exc) from None
-        todo, done, skipped = plan if plan is not None else self.pending(resume)
+        todo, done, skipped = plan if plan is not None else self.pending(resume, stop_after)
         skipped = list(skipped)
-        for count, s in enumerate(todo):
-            if stop_after is not None and count >= stop_after:
-                break
+        for s in todo:
             idx, left_out = self.indices(s), []
             path = self.out / shard_name(s)
             try:

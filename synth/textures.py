@@ -30,7 +30,7 @@ import numpy as np
 from scipy import ndimage
 
 from blsm.color import linear_to_srgb, srgb_to_linear
-from synth.raster import rasterise
+from synth.raster import rasterise_uv, uv_triangles
 
 TOPS = ("tshirt", "longsleeve", "tank")
 BOTTOMS = ("trousers", "shorts", "skirt", "capris")
@@ -165,15 +165,6 @@ def sample_outfit(rng: np.random.Generator) -> Outfit:
     return Outfit(_rgb(skin), top, bottoms, shoes, colors, patterns, _rgb(hair))
 
 
-def _rasterise(uv: np.ndarray, faces_uv: np.ndarray, size: int):
-    """(texel (N,), face (N,), barycentric (N, 3)) of the texel centres inside UV triangles (later
-    faces win), and each face's doubled UV area in texels (F,)."""
-    tri = np.stack([uv[faces_uv, 0] * size - 0.5, (1 - uv[faces_uv, 1]) * size - 0.5], -1)  # (F, 3, 2)
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    texels, face, bary = rasterise(tri, size, size, eps=1e-9)
-    return texels, face, bary, np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
-
-
 def _noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:
     """Trilinear value noise in [0, 1] of points p (N, 3) on the unit lattice."""
     i = np.floor(p)
@@ -240,6 +231,24 @@ def make_albedo(
         ValueError: naming the argument, for wrong shapes or types, out-of-range indices, uv outside
             [0, 1] by more than 1e-3, missing bones or size < 8.
     """
+    uv, faces_uv, vertices, faces, vertex_bones, joints = _checked_albedo_inputs(
+        uv, faces_uv, vertices, faces, vertex_bones, bone_names, joints, size)
+    body = _Texels.of(uv, faces_uv, vertices, faces, vertex_bones, bone_names, joints, int(size))
+    label = _garment_labels(body, outfit, rng)
+    colour = _garment_colours(body, label, outfit, rng)
+    # Step 1's fill: every texel outside the charts copies its nearest covered texel.
+    img = np.zeros((size * size, 3))
+    img[body.texels] = colour
+    empty = np.ones(size * size, bool)
+    empty[body.texels] = False
+    iy, ix = ndimage.distance_transform_edt(
+        empty.reshape(size, size), return_distances=False, return_indices=True
+    )
+    return np.round(linear_to_srgb(img.reshape(size, size, 3)[iy, ix]) * 255).astype(np.uint8)
+
+
+def _checked_albedo_inputs(uv, faces_uv, vertices, faces, vertex_bones, bone_names, joints, size) -> tuple:
+    """:func:`make_albedo`'s arrays as int64 and float64, or a ValueError naming the bad one."""
     if not isinstance(size, int | np.integer) or size < 8:
         raise ValueError(f"size must be an integer >= 8, got {size!r}")
     uv, vertices = _check("uv", uv, (None, 2), "iuf"), _check("vertices", vertices, (None, 3))
@@ -258,37 +267,86 @@ def make_albedo(
         raise ValueError(f"vertex_bones must index bone_names, in [0, {len(bone_names)})")
     if missing := sorted({b for bones in PARTS for b in bones} - set(bone_names)):
         raise ValueError(f"bone_names lacks {missing}")
-    j = {name: joints[i] for i, name in enumerate(bone_names)}
+    return uv, faces_uv, vertices, faces, vertex_bones, joints
 
-    texels, face, bary, det = _rasterise(np.clip(uv, 0, 1), faces_uv, int(size))
-    corners = faces[face]  # (N, 3)
-    p = sum(bary[:, k, None] * vertices[corners[:, k]] for k in range(3))
-    x, y, z = p.T
-    fn = np.cross(*(vertices[faces[:, 1:]] - vertices[faces[:, :1]]).transpose(1, 0, 2))  # 2 x area
-    texel_m = np.sqrt(np.linalg.norm(fn, axis=1) / np.maximum(det, 1e-12))[face]  # texel size (m)
-    vn = np.stack([np.bincount(faces.ravel(), np.repeat(fn[:, c], 3), len(vertices)) for c in range(3)], 1)
-    part_of_bone = np.full(len(bone_names), -1)
-    for q, bones in enumerate(PARTS):
-        part_of_bone[[bone_names.index(b) for b in bones]] = q
-    cp = part_of_bone[vertex_bones][corners]  # the part with the largest interpolated one-hot weight
-    same = np.stack([sum(bary[:, k] * (cp[:, k] == cp[:, c]) for k in range(3)) for c in range(3)], 1)
-    part = np.take_along_axis(cp, same.argmax(1)[:, None], 1)[:, 0]
-    head, neck, torso = part == 0, part == 1, part == 2
-    arm, leg, left = (part == 3) | (part == 4), part >= 5, (part == 3) | (part == 5)
 
-    def along(a: str, b: str, m: np.ndarray) -> np.ndarray:  # fraction along joint a -> b, limb texels m
-        out = np.full(len(p), np.inf)
+@dataclass(frozen=True)
+class _Texels:
+    """Step 1 of the module docstring: the covered texels of a body's texture, each with its 3D rest
+    position and body part.
+
+    Attributes:
+        texels: (N,) flat texel indices; ``face`` (N,) and ``bary`` (N, 3) the UV triangle there.
+        corners: (N, 3) the face's vertices.
+        p: (N, 3) rest position, metres.
+        texel_m: (N,) a texel's size on the body, metres.
+        vn: (V, 3) area-weighted vertex normals (not unit).
+        part: (N,) index into ``PARTS``.
+        vertices, vertex_bones, bone_names: the body's.
+        j: bone name -> (3,) rest position of its head.
+    """
+
+    texels: np.ndarray
+    face: np.ndarray
+    bary: np.ndarray
+    corners: np.ndarray
+    p: np.ndarray
+    texel_m: np.ndarray
+    vn: np.ndarray
+    part: np.ndarray
+    vertices: np.ndarray
+    vertex_bones: np.ndarray
+    bone_names: list[str]
+    j: dict[str, np.ndarray]
+
+    @staticmethod
+    def of(uv, faces_uv, vertices, faces, vertex_bones, bone_names, joints, size: int) -> _Texels:
+        j = {name: joints[i] for i, name in enumerate(bone_names)}
+        uv = np.clip(uv, 0, 1)
+        texels, face, bary = rasterise_uv(uv, faces_uv, size)
+        tri = uv_triangles(uv, faces_uv, size)
+        e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        det = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])  # each face's doubled UV area, texels
+        corners = faces[face]  # (N, 3)
+        p = sum(bary[:, k, None] * vertices[corners[:, k]] for k in range(3))
+        fn = np.cross(*(vertices[faces[:, 1:]] - vertices[faces[:, :1]]).transpose(1, 0, 2))  # 2 x area
+        texel_m = np.sqrt(np.linalg.norm(fn, axis=1) / np.maximum(det, 1e-12))[face]  # texel size (m)
+        vn = np.stack([np.bincount(faces.ravel(), np.repeat(fn[:, c], 3), len(vertices)) for c in range(3)], 1)
+        part_of_bone = np.full(len(bone_names), -1)
+        for q, bones in enumerate(PARTS):
+            part_of_bone[[bone_names.index(b) for b in bones]] = q
+        cp = part_of_bone[vertex_bones][corners]  # the part with the largest interpolated one-hot weight
+        same = np.stack([sum(bary[:, k] * (cp[:, k] == cp[:, c]) for k in range(3)) for c in range(3)], 1)
+        part = np.take_along_axis(cp, same.argmax(1)[:, None], 1)[:, 0]
+        return _Texels(texels, face, bary, corners, p, texel_m, vn, part, vertices, vertex_bones, bone_names, j)
+
+    def along(self, a: str, b: str, m: np.ndarray) -> np.ndarray:
+        """Fraction along joint ``a`` -> ``b`` (``_l`` or ``_r`` by side) of the limb texels ``m``."""
+        left = (self.part == 3) | (self.part == 5)
+        out = np.full(len(self.p), np.inf)
         for side, sm in (("_l", m & left), ("_r", m & ~left)):
-            d = j[b + side] - j[a + side]
-            out[sm] = (p[sm] - j[a + side]) @ d / (d @ d)
+            d = self.j[b + side] - self.j[a + side]
+            out[sm] = (self.p[sm] - self.j[a + side]) @ d / (d @ d)
         return out
 
-    def centre(bone: str, mask: np.ndarray | bool = True) -> np.ndarray:
-        return vertices[(vertex_bones == bone_names.index(bone)) & mask].mean(0)
+    def centre(self, bone: str, mask: np.ndarray | bool = True) -> np.ndarray:
+        """The mean rest position of ``bone``'s vertices (``mask``: of those only)."""
+        return self.vertices[(self.vertex_bones == self.bone_names.index(bone)) & mask].mean(0)
 
-    unit = (j["head"][1] - j["ankle_l"][1]) / 1.4  # about 1 for an adult
+    @property
+    def unit(self) -> float:
+        """About 1 for an adult: the body's head-to-ankle height over 1.4 m."""
+        return (self.j["head"][1] - self.j["ankle_l"][1]) / 1.4
+
+
+def _garment_labels(body: _Texels, outfit: Outfit, rng: np.random.Generator) -> np.ndarray:
+    """Step 2 of the module docstring: per texel 0 skin, 1 top, 2 bottoms, 3 shoes, 4 soles, 5 hair."""
+    j, vertices, unit = body.j, body.vertices, body.unit
+    x, y, z = body.p.T
+    head, neck, torso = body.part == 0, body.part == 1, body.part == 2
+    arm, leg, left = (body.part == 3) | (body.part == 4), body.part >= 5, (body.part == 3) | (body.part == 5)
     y_pel, y_s1, y_c, y_n = (j[b][1] for b in ("pelvis", "spine_01", "clavicle_l", "neck"))
-    label = np.zeros(len(p), np.int64)  # 0 skin, 1 top, 2 bottoms, 3 shoes, 4 soles, 5 hair
+    label = np.zeros(len(body.p), np.int64)
     if outfit.shoes == "shoes":  # the foot below a line near the ankle joint (lower at the toes)
         ank = np.where(left[:, None], j["ankle_l"], j["ankle_r"])
         line = (
@@ -301,9 +359,9 @@ def make_albedo(
     # Bottoms: torso and legs below the waist, down to a hem perpendicular to the thigh or shin.
     waist = y_pel + rng.uniform(0.5, 1.8) * (y_s1 - y_pel)
     a, b, lo, hi = HEMS[outfit.bottoms]
-    label[(y < waist) & (torso | (leg & (along(a, b, leg) < rng.uniform(lo, hi))))] = 2
+    label[(y < waist) & (torso | (leg & (body.along(a, b, leg) < rng.uniform(lo, hi))))] = 2
     # Top: torso (and hips) between the hem and the neckline; sleeves by type.
-    nc = centre("neck")
+    nc = body.centre("neck")
     rn = np.hypot(x - nc[0], z - nc[2])
     lo, hi = (-1.0, -0.3) if outfit.top == "tank" else (-0.3, 0.2)
     y_front, y_back = y_c + rng.uniform(lo, hi) * (y_n - y_c), y_c + rng.uniform(0.4, 0.8) * (y_n - y_c)
@@ -312,9 +370,9 @@ def make_albedo(
     hem = waist - rng.uniform(0.0, 1.5) * (y_s1 - y_pel)
     top = (torso | neck | leg) & (y < np.minimum(neckline, y_n)) & (y > hem)
     if outfit.top == "tshirt":
-        top |= arm & (along("shoulder", "elbow", arm) < rng.uniform(0.3, 0.6))
+        top |= arm & (body.along("shoulder", "elbow", arm) < rng.uniform(0.3, 0.6))
     elif outfit.top == "longsleeve":
-        top |= arm & (along("elbow", "wrist", arm) < rng.uniform(0.9, 1.0))
+        top |= arm & (body.along("elbow", "wrist", arm) < rng.uniform(0.9, 1.0))
     else:  # armholes: straps above the shoulder joint, an elliptic cut-out below it
         xs, ys = j["shoulder_l"][0] - j["pelvis"][0], j["shoulder_l"][1]
         ax, ay = rng.uniform(0.35, 0.55) * xs, rng.uniform(1.0, 1.4) * (ys - j["spine_03"][1])
@@ -322,13 +380,18 @@ def make_albedo(
         top &= ~(((y >= ys) & (ex > xs - ax)) | (((ex - xs) / ax) ** 2 + ((y - ys) / ay) ** 2 < 1))
     label[top] = 1
     # Hair: a cap above a hairline high at the front, at the ears on the sides, low at the back.
-    skull = centre("head", vertices[:, 1] > j["head"][1])
-    h_head = vertices[vertex_bones == bone_names.index("head"), 1].max() - j["head"][1]
+    skull = body.centre("head", vertices[:, 1] > j["head"][1])
+    h_head = vertices[body.vertex_bones == body.bone_names.index("head"), 1].max() - j["head"][1]
     fh = (z - skull[2]) / np.maximum(np.hypot(x - skull[0], z - skull[2]), 1e-9)  # +1 front, -1 back
     back = rng.uniform(-0.35, 0.1)
     hairline = j["head"][1] + h_head * (0.45 + (0.72 - back) / 2 * fh + (back - 0.18) / 2 * fh**2)
     label[(head | neck) & (y > hairline)] = 5
+    return label
 
+
+def _garment_colours(body: _Texels, label: np.ndarray, outfit: Outfit, rng: np.random.Generator) -> np.ndarray:
+    """Step 3 of the module docstring: (N, 3) linear RGB of the labelled texels, patterns included."""
+    p, bary, corners = body.p, body.bary, body.corners
     table = rng.uniform(size=4096)
     colour = np.empty((len(p), 3))
     m = label == 0
@@ -340,14 +403,14 @@ def make_albedo(
         pat = outfit.patterns.get(name, "plain")
         base = np.asarray(outfit.hair if name == "hair" else outfit.colors[name])
         alt = np.asarray(outfit.colors.get(name + "_alt", base))
-        period = rng.uniform(0.015, 0.06) * unit
-        q, w = p[m] + rng.uniform(0, period, 3), texel_m[m] / period
+        period = rng.uniform(0.015, 0.06) * body.unit
+        q, w = p[m] + rng.uniform(0, period, 3), body.texel_m[m] / period
         grain = _noise(q / 0.004 * np.array([1, 0.3, 1]), table) + _noise(q / 0.02, table[::-1].copy())
         mix = np.zeros(len(q))
         if pat == "stripes":
             mix = _pulse(q[:, 1] / period, rng.uniform(0.2, 0.5), w)
         elif pat in ("checks", "dots"):  # coordinates on the plane facing the normal's dominant axis
-            n = np.abs(sum(bary[m, k, None] * vn[corners[m, k]] for k in range(3))).argmax(1)
+            n = np.abs(sum(bary[m, k, None] * body.vn[corners[m, k]] for k in range(3))).argmax(1)
             u, v = np.where(n == 0, q[:, 2], q[:, 0]) / period, np.where(n == 1, q[:, 2], q[:, 1]) / period
             if pat == "checks":
                 mix = 0.5 * (_pulse(u, 0.5, w) + _pulse(v, 0.5, w))
@@ -358,12 +421,4 @@ def make_albedo(
         amp = 0.25 if name == "hair" else 0.16 if pat == "heather" else 0.04
         colour[m] = (base + mix[:, None] * (alt - base)) * (1 + amp * (grain - 1))[:, None]
     colour[label == 4] = outfit.colors["soles"]
-
-    img = np.zeros((size * size, 3))
-    img[texels] = colour
-    empty = np.ones(size * size, bool)
-    empty[texels] = False
-    iy, ix = ndimage.distance_transform_edt(
-        empty.reshape(size, size), return_distances=False, return_indices=True
-    )
-    return np.round(linear_to_srgb(img.reshape(size, size, 3)[iy, ix]) * 255).astype(np.uint8)
+    return colour

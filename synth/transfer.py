@@ -12,19 +12,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from synth.raster import rasterise_uv
 from synth.subjects import Subject, registration_output
-
-
-def rasterise_uv(uv: np.ndarray, faces_uv: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Texel centres inside UV triangles (v up; row 0 of the image is v = 1).
-
-    Returns:
-        texels (T,) flat indices into a ``size x size`` image, face (T,), barycentric (T, 3).
-    """
-    from synth.textures import _rasterise
-
-    texels, face, bary, _ = _rasterise(uv, faces_uv, size)
-    return texels, face, bary
 
 
 def sample_bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:

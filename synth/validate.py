@@ -63,51 +63,54 @@ def coverage(verts2d: np.ndarray, faces: np.ndarray, width: int, height: int) ->
 
 
 class MeshRebuilder:
-    """Rebuilds a sample's posed meshes from ``subjects/`` and the stored parameters."""
+    """Rebuilds a sample's posed meshes from ``subjects/`` and the stored parameters, posed as the
+    generator posed them (:func:`synth.sample.pose_person`)."""
 
     def __init__(self, dataset: Path, config: dict[str, Any]) -> None:
         import blsm
-        from synth.generate import subdivide
-        from synth.subjects import load_subject
+        from synth.sample import subdivide
 
         self.model = blsm.load()
         self.subjects: dict[str, Any] = {}
         self.hair: dict[tuple, Any] = {}
         self.dataset = dataset
         self.regions: dict[tuple, dict[str, np.ndarray]] = {}  # a sequence person's contact regions
-        self.load = load_subject
         self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
         self.parents = subdivide(self.model.faces.numpy()) if self.subdivide else None
 
     def mesh(self, person: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        from synth.subjects import pose_subject
+        """Sample person ``person``'s body and hair: (V, 3) float64 vertices, (F, 3) faces (the
+        hair's after the body's) and (K, 3) keypoints; the body's vertex bones in ``self.bones``."""
+        from synth.sample import pose_person
+        from synth.subjects import load_subject
 
         sid = person["subject"]
         if sid not in self.subjects:
-            self.subjects[sid] = self.load(self.dataset / "subjects" / f"{sid}.npz")
+            self.subjects[sid] = load_subject(self.dataset / "subjects" / f"{sid}.npz")
         s = self.subjects[sid]
         b = person["blsm"]
         pipe = person["pipeline"]
         params = {k: np.asarray(b[k], np.float32) for k in ("pose", "global_orient", "transl")}
-        out = pose_subject(s, self.model, params, pipe)
-        v, f, kp = out["vertices"], out["faces"], out["keypoints"]
-        self.bones = np.asarray(out["vertex_bones"])  # the body's, for a sequence's contact regions
-        if pipe == "raw":  # the scan as captured, moved to its place in the image
-            d = params["transl"] - s.registration["transl"]
-            v, kp = v + d, kp + d
-        if self.parents is not None:
-            par, f = self.parents
-            v = 0.5 * (v[par[:, 0]] + v[par[:, 1]])
-            self.bones = self.bones[par[:, 0]]
+        hair = None
         if person.get("hair") is not None:  # the hair follows the body's faces (synth.labels)
-            from synth.hair import HairSpec, hair_faces, pose_hair, subject_hair
+            from synth.hair import HairSpec, subject_hair
 
             key = (sid, pipe, json.dumps(person["hair"], sort_keys=True))
             if key not in self.hair:
                 self.hair[key] = subject_hair(s, self.model, HairSpec.from_json(person["hair"]), pipe)
-            hv = pose_hair(self.hair[key], out["transforms"])
-            v = np.concatenate([v, hv])
-            f = np.concatenate([f, hair_faces() + (len(v) - len(hv))])
+            hair = self.hair[key]
+        p = pose_person(s, self.model, pipe, params["pose"], params["global_orient"], params["transl"],
+                        self.parents, hair)  # fmt: skip
+        v, f, kp = p.vertices, p.faces, p.keypoints
+        self.bones = p.vertex_bones  # the body's, for a sequence's contact regions
+        if pipe == "raw":  # the scan as captured, moved to its place in the image
+            d = params["transl"] - s.registration["transl"]
+            v, kp = v + d, kp + d
+        if p.hair is not None:
+            from synth.hair import hair_faces
+
+            f = np.concatenate([f, hair_faces() + len(v)])
+            v = np.concatenate([v, p.hair])
         return v.astype(np.float64), f, kp
 
 

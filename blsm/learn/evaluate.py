@@ -12,8 +12,8 @@
   scans (``gt_points`` of the scan file), where they can be found.
 
 Registrations are read from ``blsm-registration`` files (``vertices`` (V, 3) and a ``meta`` JSON
-with the subject id, the pose id and the split); see :func:`blsm.learn.registrations.load_registrations`
-(also importable from here).
+with the subject id, the pose id and the split); see
+:func:`blsm.learn.registrations.load_registration_set`. ``blsm evaluate`` is in :mod:`blsm.learn.cli`.
 
 Writes a markdown section, a JSON file with every number, and PNG line plots (drawn with PIL: the
 project's environment has no matplotlib).
@@ -21,7 +21,6 @@ project's environment has no matplotlib).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import time
@@ -32,8 +31,8 @@ import numpy as np
 import torch
 
 from blsm.io import atomic_write
-from blsm.learn.fit import BLSMFittable, FitConfig, Fittable, staged_fit
-from blsm.learn.registrations import RegistrationSet, load_registrations, spread_over_subjects
+from blsm.learn.fit import FitConfig, Fittable, staged_fit
+from blsm.learn.registrations import RegistrationSet
 
 DEFAULT_KS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32)
 AUC_MAX_MM = 20.0
@@ -239,9 +238,12 @@ def _table(curves: dict[str, dict[int, ErrorStats]], ks: list[int]) -> list[str]
 
 
 def write_report(report: EvalReport, out: str | Path, title: str = "BLSM evaluation") -> list[Path]:
-    """Write ``out`` (markdown), ``<stem>.json`` and ``<stem>_shape.png`` / ``<stem>_pose.png``."""
+    """Write ``out`` (markdown), and beside it in ``figures/`` ``<stem>.json`` and ``<stem>_shape.png`` /
+    ``<stem>_pose.png`` (generated files apart from the written documents, as in ``docs/figures``)."""
     out = Path(out)
     stem = out.with_suffix("")
+    figures = out.parent / "figures"
+    figures.mkdir(parents=True, exist_ok=True)
     written = []
     ks = sorted({k for c in report.shape.values() for k in c})
     lines = [f"## {title}", ""]
@@ -259,25 +261,25 @@ def write_report(report: EvalReport, out: str | Path, title: str = "BLSM evaluat
     )
     lines += ["", "### Shape generalisation (Fig. 5.6, Table 5.2)", ""]
     lines += _table(report.shape, ks)
-    plot = stem.parent / f"{stem.name}_shape.png"
+    plot = figures / f"{stem.name}_shape.png"
     line_plot(
         {n: ([float(k) for k in c], [c[k].mean for k in c]) for n, c in report.shape.items()},
         plot, "Shape generalisation", "number of shape coefficients", "mean abs. vertex error (mm)",
     )
     written.append(plot)
-    lines += ["", f"![shape generalisation]({plot.name})"]
+    lines += ["", f"![shape generalisation](figures/{plot.name})"]
     if any(report.pose.values()):
         pks = sorted({k for c in report.pose.values() for k in c})
         lines += ["", "### Pose generalisation (Fig. 5.7 right)", "",
                   "Shape fitted on each subject's first registration, pose only on the others.", ""]
         lines += _table(report.pose, pks)
-        plot = stem.parent / f"{stem.name}_pose.png"
+        plot = figures / f"{stem.name}_pose.png"
         line_plot(
             {n: ([float(k) for k in c], [c[k].mean for k in c]) for n, c in report.pose.items()},
             plot, "Pose generalisation", "number of shape coefficients", "mean abs. vertex error (mm)",
         )
         written.append(plot)
-        lines += ["", f"![pose generalisation]({plot.name})"]
+        lines += ["", f"![pose generalisation](figures/{plot.name})"]
     if report.registration is not None:
         r = report.registration
         lines += ["", "### Registration error against ground-truth correspondences", "",
@@ -287,7 +289,7 @@ def write_report(report: EvalReport, out: str | Path, title: str = "BLSM evaluat
     with atomic_write(out, "w") as fh:
         fh.write("\n".join(lines))
     written.insert(0, out)
-    js = stem.parent / f"{stem.name}.json"
+    js = figures / f"{stem.name}.json"
     payload = {
         "shape": {n: {str(k): asdict(s) for k, s in c.items()} for n, c in report.shape.items()},
         "pose": {n: {str(k): asdict(s) for k, s in c.items()} for n, c in report.pose.items()},
@@ -393,62 +395,3 @@ def line_plot(
     with atomic_write(path) as fh:
         img.save(fh, format="PNG")
     return path
-
-
-# --------------------------------------------------------------------------------------------
-# Command line
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``blsm evaluate``: BLSM-linear vs SMPL-reimpl on held-out registrations."""
-    import blsm
-    from blsm.learn.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
-
-    ap = argparse.ArgumentParser(prog="blsm evaluate", description=__doc__.split("\n")[0])
-    ap.add_argument("--model", default=None, help="BLSM model .npz (default: the packaged one)")
-    ap.add_argument("--baseline", default=None, help="SMPL-reimpl .npz (blsm.learn.smpl_reimpl)")
-    ap.add_argument("--registrations", required=True, help="folder of blsm-registration .npz files")
-    ap.add_argument("--scans", default=None, help="population / scan folder for ground truth")
-    ap.add_argument("--split", default="test", choices=("train", "test", "all"))
-    ap.add_argument("--out", default="docs/blsm_evaluation.md", help="markdown file to write")
-    ap.add_argument("--ks", default=",".join(map(str, DEFAULT_KS)), help="comma-separated k values")
-    ap.add_argument("--iterations", default="100,100,100,300", help="Adam steps of the four stages")
-    ap.add_argument("--lm-iterations", type=int, default=25, help="Levenberg-Marquardt polish steps")
-    ap.add_argument("--batch", type=int, default=16)
-    ap.add_argument("--max-registrations", type=int, default=0, help="0 = all")
-    ap.add_argument("--spread", action="store_true",
-                    help="with --max-registrations: take them round-robin over the subjects, not the first N")
-    ap.add_argument("--no-pose", action="store_true", help="skip pose generalisation")
-    ap.add_argument("--targets", default="registrations", choices=("registrations", "ground-truth"),
-                    help="fit the registrations, or the true bodies they register (needs gt_points)")
-    ap.add_argument("--also", action="append", default=[], metavar="NAME=MODEL.npz",
-                    help="another BLSM model to fit alongside (repeatable)")
-    args = ap.parse_args(argv)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
-    try:
-        ks = tuple(int(k) for k in args.ks.split(","))
-        iters = tuple(int(i) for i in args.iterations.split(","))
-        fitcfg = FitConfig(iterations=iters, lm_iterations=args.lm_iterations)  # type: ignore[arg-type]
-        model = blsm.load(args.model)
-        regs = load_registrations(args.registrations, model.num_vertices, args.scans)
-        if args.split != "all":
-            regs = regs.split(args.split)
-        if args.max_registrations > 0:
-            n = min(args.max_registrations, regs.vertices.shape[0])
-            regs = regs.select(spread_over_subjects(list(regs.subjects), n) if args.spread else list(range(n)))
-        models: dict[str, Fittable] = {"BLSM-linear": BLSMFittable(model)}
-        if args.baseline:
-            models["SMPL-reimpl"] = SMPLReimplFittable(load_smpl_reimpl(args.baseline, model))
-        for spec in args.also:
-            name, sep, path = spec.partition("=")
-            if not sep or not name or not path:
-                raise ValueError(f"--also {spec}: expected NAME=MODEL.npz")
-            models[name] = BLSMFittable(blsm.load(path))
-        report = evaluate(models, regs, EvalConfig(ks=ks, fit=fitcfg, batch=args.batch,
-                                                   pose_generalisation=not args.no_pose), args.targets)
-        for p in write_report(report, args.out):
-            print(p)
-    except ValueError as exc:
-        print(f"blsm evaluate: error: {exc}")
-        return 2
-    return 0

@@ -21,7 +21,6 @@ Units: metres and radians; errors are Euclidean per-vertex distances in metres.
 from __future__ import annotations
 
 import abc
-
 from dataclasses import dataclass, field
 
 import torch

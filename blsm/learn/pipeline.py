@@ -18,7 +18,6 @@ test`` runs). Unknown keys and wrong types are one-line errors naming the file a
 
 from __future__ import annotations
 
-import argparse
 import json
 import multiprocessing as mp
 import os
@@ -33,7 +32,7 @@ import torch
 
 from blsm import io
 from blsm.config import config_from_dict
-from blsm.learn.register import RegisterConfig
+from blsm.learn.register_config import RegisterConfig
 from blsm.learn.train import TrainConfig
 
 
@@ -212,7 +211,7 @@ _WORKER: dict[str, Any] = {}
 
 def _init_register_worker(model_path: str | None, reg_cfg: dict) -> None:
     import blsm
-    from blsm.learn.register import default_selection
+    from blsm.learn.landmark_fit import default_selection
 
     torch.set_num_threads(1)
     model = blsm.load(model_path)
@@ -220,7 +219,8 @@ def _init_register_worker(model_path: str | None, reg_cfg: dict) -> None:
 
 
 def _register_chunk(chunk: list[tuple[str, dict, str]]) -> list[str]:
-    from blsm.learn.register import register, save_registration
+    from blsm.learn.register import register
+    from blsm.learn.registrations import save_registration
     from blsm.learn.scans import load_scan
 
     scans = []
@@ -297,7 +297,8 @@ def learning_step(
 ) -> dict:
     """Learn the model from the registrations (train split for the model; test kept for the report)."""
     import blsm
-    from blsm.learn.train import learn_model, load_registrations
+    from blsm.learn.registrations import load_registrations
+    from blsm.learn.train import learn_model
 
     regs = load_registrations([reg_folder])
     failed = [r for r in regs if _landmark_rms(r) > cfg.run.max_landmark_rms_mm]
@@ -377,13 +378,13 @@ def evaluation_step(cfg: PipelineConfig, reg_folder: Path, population: Path, out
     import blsm
     from blsm.learn.evaluate import EvalConfig, evaluate, write_report
     from blsm.learn.fit import BLSMFittable, FitConfig
-    from blsm.learn.registrations import load_registrations, spread_over_subjects
+    from blsm.learn.registrations import load_registration_set, spread_over_subjects
     from blsm.learn.smpl_reimpl import SMPLReimplFittable, SMPLTrainConfig, train_smpl_reimpl
 
     e = cfg.evaluation
     t0 = time.time()
     model = blsm.load(out_model)
-    regs = load_registrations(reg_folder, model.num_vertices, population)
+    regs = load_registration_set(reg_folder, model.num_vertices, population)
     train, test = regs.split("train"), regs.split("test")
     if test.vertices.shape[0] == 0:
         raise ValueError(f"{population}: no held-out subject to evaluate on (raise population.test_fraction)")
@@ -457,24 +458,3 @@ def run(cfg: PipelineConfig, out_model: Path, model_path: str | None = None, sou
         json.dump(report, f, indent=1)
     _log(f"wrote {out_model} and {report_path} ({report['seconds_total'] / 60:.1f} min in all)")
     return report
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="blsm train", description=__doc__.splitlines()[0])
-    parser.add_argument("config", type=Path, help="run config YAML (configs/blsm/train_default.yaml)")
-    parser.add_argument("--out", type=Path, required=True, help="the learned model file (.npz)")
-    parser.add_argument("--model", default=None, help="initial model (default: the packaged rig, blsm/data/blsm_anny_rig.npz)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing model file")
-    args = parser.parse_args(argv)
-    try:
-        if args.out.exists() and not args.overwrite:
-            raise ValueError(f"{args.out}: exists; pass --overwrite to replace it")
-        run(load_config(args.config), args.out, args.model, str(args.config))
-    except ValueError as exc:
-        print(f"blsm train: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -29,7 +29,6 @@ for pose). Here Anny (PyPI ``anny``) plays the scanned people:
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -630,37 +629,3 @@ def render_preview(
         )
         sheet.paste(t, ((i % cols) * w, (i // cols) * h))
     return render.save_png(np.asarray(sheet), path)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="blsm scans", description="Synthetic scan populations from Anny.")
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    mk = sub.add_parser("make", help="write a scan population folder")
-    mk.add_argument("--out", type=Path, required=True)
-    mk.add_argument("--subjects", type=int, required=True)
-    mk.add_argument("--posed-subjects", type=int, default=0)
-    mk.add_argument("--poses", type=int, default=0, help="posed scans per posed subject")
-    mk.add_argument("--seed", type=int, default=0)
-    mk.add_argument("--test-fraction", type=float, default=0.1)
-    mk.add_argument(
-        "--motions", type=Path, default=None, help="motion library folder (default: the pose prior)"
-    )
-    mk.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
-    index = make_population(
-        args.out,
-        args.subjects,
-        args.posed_subjects,
-        args.poses,
-        args.seed,
-        args.test_fraction,
-        motions=args.motions,
-        overwrite=args.overwrite,
-    )
-    n_scans = sum(len(s["scans"]) for s in index["subjects"])
-    print(f"wrote {n_scans} scans of {len(index['subjects'])} subjects to {args.out} in {index['seconds']} s")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

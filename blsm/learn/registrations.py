@@ -1,24 +1,152 @@
-"""Registrations in the model topology, read from ``blsm-registration`` files, and their selection.
+"""Registration files: one scan brought into the template topology, written and read back.
 
-A registration is one scan's mesh brought into the template topology: ``vertices`` (V, 3) in
-metres, world frame (Y up), and a ``meta`` JSON with the subject id, the pose id and the split
-(``"train"`` or ``"test"``).  :func:`load_registrations` reads a folder of them into a
-:class:`RegistrationSet`; :func:`spread_over_subjects` picks a subset that covers many subjects.
+A registration (``blsm-registration`` v1, :class:`Registration`, written by :func:`save_registration`)
+holds the registered mesh ``vertices`` (V, 3) in metres, world frame (Y up), the stage-1 skeleton
+(bone scales, angles, global orientation, translation), the T-pose displacements and a ``meta`` JSON
+with the subject id, the pose id and the split (``"train"`` or ``"test"``).
 
-Used by the held-out evaluation (:mod:`blsm.learn.evaluate`), the SMPL-reimpl baseline's training
-(:mod:`blsm.learn.smpl_reimpl`) and the pipeline (:mod:`blsm.learn.pipeline`).
+Two readers, for two jobs:
+
+- :func:`load_registrations`: whole registrations, strictly checked, for learning the model
+  (:mod:`blsm.learn.train`).
+- :func:`load_registration_set`: only the meshes and their labels of a folder of registration-like
+  files (``vertices`` and ``meta``; ground truth when it can be found), as a
+  :class:`RegistrationSet`, for the held-out evaluation (:mod:`blsm.learn.evaluate`), the
+  SMPL-reimpl baseline's training (:mod:`blsm.learn.smpl_reimpl`) and the pipeline
+  (:mod:`blsm.learn.pipeline`); :func:`spread_over_subjects` picks a subset of it that covers many
+  subjects.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-__all__ = ["RegistrationSet", "load_registrations", "spread_over_subjects"]
+from blsm.io import read_versioned_npz, write_versioned_npz
+
+__all__ = [
+    "Registration",
+    "RegistrationSet",
+    "correspondence_error",
+    "load_registration",
+    "load_registration_set",
+    "load_registrations",
+    "save_registration",
+    "spread_over_subjects",
+]
+
+FORMAT = "blsm-registration"
+FORMAT_VERSION = 1
+
+
+# ------------------------------------------------------------------------------------------------
+# One registration file
+
+
+@dataclass
+class Registration:
+    """One registered scan in BLSM topology ("blsm-registration" v1).
+
+    Attributes:
+        vertices: (V, 3) the registered, posed mesh S^ (Eq. 5.14's result), metres, world frame.
+        bone_scales: (J,) global bone scales b.
+        angles: (47,) atom angles, radians.
+        global_orient: (3,) axis-angle. transl: (3,) metres.
+        displacement: (V, 3) V_D in the T-pose frame: ``S^ = LBS(V_T + V_D, T(b, theta))``.
+        meta: scan id, subject, pose id, split, errors in mm, iterations, seconds.
+    """
+
+    vertices: np.ndarray
+    bone_scales: np.ndarray
+    angles: np.ndarray
+    global_orient: np.ndarray
+    transl: np.ndarray
+    displacement: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+_REG_ARRAYS: dict[str, tuple[str, ...]] = {
+    "vertices": ("V", "3"),
+    "bone_scales": ("J",),
+    "angles": ("D",),
+    "global_orient": ("3",),
+    "transl": ("3",),
+    "displacement": ("V", "3"),
+}
+
+
+def save_registration(reg: Registration, path: str | Path) -> Path:
+    """Write a "blsm-registration" v1 ``.npz`` atomically (float32 arrays)."""
+    path = Path(path)
+    arrays = {k: np.asarray(getattr(reg, k), dtype=np.float32) for k in _REG_ARRAYS}
+    _check_registration(arrays, str(path))
+    entries = {"meta": np.array(json.dumps(reg.meta, sort_keys=True)), **arrays}
+    return write_versioned_npz(path, FORMAT, FORMAT_VERSION, entries)
+
+
+def load_registration(path: str | Path) -> Registration:
+    """Read and validate a "blsm-registration" v1 file; errors are one line naming the file."""
+    path = Path(path)
+    raw = read_versioned_npz(path, FORMAT, FORMAT_VERSION, "registration")
+    missing = [k for k in (*_REG_ARRAYS, "meta") if k not in raw]
+    if missing:
+        raise ValueError(f"{path}: missing arrays {missing}")
+    try:
+        meta = json.loads(str(raw["meta"]))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: meta is not JSON ({exc})") from None
+    arrays = {k: raw[k].astype(np.float32) for k in _REG_ARRAYS}
+    _check_registration(arrays, str(path))
+    return Registration(**arrays, meta=meta)
+
+
+def _check_registration(arrays: dict[str, np.ndarray], where: str) -> None:
+    dims: dict[str, int] = {"3": 3}
+    for k, shape in _REG_ARRAYS.items():
+        a = arrays[k]
+        if a.ndim != len(shape) or any(dims.setdefault(n, s) != s for n, s in zip(shape, a.shape)):
+            raise ValueError(f"{where}: array {k!r} has shape {a.shape}, expected {shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{where}: array {k!r} is not finite")
+
+
+def load_registrations(paths: Sequence[str | Path]) -> list[Registration]:
+    """Read registration files (:func:`load_registration`); folders are expanded to their ``*.npz``
+    files in sorted order."""
+    files: list[Path] = []
+    for p in map(Path, paths):
+        files.extend(sorted(p.glob("*.npz")) if p.is_dir() else [p])
+    if not files:
+        raise ValueError(f"no registration files in {', '.join(map(str, paths))}")
+    return [load_registration(f) for f in files]
+
+
+def correspondence_error(reg: Registration, gt_points: Any) -> tuple[float, float]:
+    """Mean and max per-vertex distance in millimetres between ``reg.vertices`` and ground truth.
+
+    Args:
+        reg: a registration (or anything with ``vertices`` (V, 3) metres).
+        gt_points: (V, 3) true positions of the template vertices on the scan, metres.
+
+    Returns:
+        (mean_mm, max_mm).
+    """
+    v = np.asarray(reg.vertices, dtype=np.float64)
+    g = np.asarray(gt_points, dtype=np.float64)
+    if v.shape != g.shape:
+        raise ValueError(f"gt_points must be {v.shape}, got {g.shape}")
+    d = np.linalg.norm(v - g, axis=1) * 1000.0
+    return float(d.mean()), float(d.max())
+
+
+# ------------------------------------------------------------------------------------------------
+# A folder of registrations as one set of meshes
 
 
 @dataclass
@@ -95,7 +223,7 @@ def _find_gt(meta: dict, reg_dir: Path, scans_dir: Path | None) -> np.ndarray | 
     return None
 
 
-def load_registrations(
+def load_registration_set(
     folder: str | Path, num_vertices: int, scans_dir: str | Path | None = None
 ) -> RegistrationSet:
     """Read every ``*.npz`` registration in ``folder`` (recursively), sorted by subject and pose.

@@ -27,7 +27,6 @@ gt_transl          (3,) float32    optional: metres
 
 from __future__ import annotations
 
-import io as _io
 import json
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -37,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from blsm.io import atomic_write
+from blsm.io import read_versioned_npz, write_versioned_npz
 from blsm.learn.landmarks import LANDMARKS_YAML
 
 FORMAT = "blsm-scan"
@@ -220,8 +219,6 @@ def save_scan(scan: Scan, path: str | Path) -> Path:
     path = Path(path)
     check_scan(scan, str(path))
     arrays: dict[str, np.ndarray] = {
-        "format": np.array(FORMAT),
-        "format_version": np.array(FORMAT_VERSION),
         "vertices": np.asarray(scan.vertices, np.float32),
         "faces": np.asarray(scan.faces, np.int32),
         "landmark_names": np.array(list(scan.landmark_names), dtype=str),
@@ -231,23 +228,11 @@ def save_scan(scan: Scan, path: str | Path) -> Path:
     for key in _GT_KEYS:
         if getattr(scan, key) is not None:
             arrays[key] = np.asarray(getattr(scan, key), np.float32)
-    buf = _io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    with atomic_write(path) as fh:
-        fh.write(buf.getvalue())
-    return path
+    return write_versioned_npz(path, FORMAT, FORMAT_VERSION, arrays)
 
 
 def _load_npz(path: Path) -> Scan:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as e:  # zipfile / numpy errors have many types
-        raise ValueError(f"{path}: unreadable scan file ({type(e).__name__}: {e})") from None
-    if str(data.get("format", "")) != FORMAT:
-        raise ValueError(f"{path}: not a {FORMAT} file (format={data.get('format')!r})")
-    if int(data.get("format_version", -1)) != FORMAT_VERSION:
-        raise ValueError(f"{path}: unsupported {FORMAT} version {data.get('format_version')}")
+    data = read_versioned_npz(path, FORMAT, FORMAT_VERSION, "scan")
     for key in ("vertices", "faces", "landmark_names", "landmarks", "meta"):
         if key not in data:
             raise ValueError(f"{path}: missing array {key!r}")

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from blsm.io import atomic_write
+from blsm.io import read_versioned_npz, write_versioned_npz
 from blsm.learn.fit import FitConfig, Fittable, staged_fit
 from blsm.learn.posing import Posed, pose
 
@@ -157,19 +157,13 @@ class SMPLReimpl(nn.Module):
 
     def save(self, path: str | Path) -> Path:
         """Write the ``blsm-smpl-reimpl`` ``.npz`` atomically."""
-        path = Path(path)
         meta = {**self.meta, "bone_names": list(self.skeleton.bone_names)}
-        with atomic_write(path) as fh:
-            np.savez_compressed(
-                fh,
-                format=np.array(FORMAT),
-                format_version=np.array(FORMAT_VERSION),
-                template=self.template.detach().cpu().float().numpy(),
-                shape_basis=self.shape_basis.detach().cpu().float().numpy(),
-                joint_regressor=self.joint_regressor.detach().cpu().float().numpy(),
-                meta_json=np.array(json.dumps(meta)),
-            )
-        return path
+        return write_versioned_npz(path, FORMAT, FORMAT_VERSION, {
+            "template": self.template.detach().cpu().float().numpy(),
+            "shape_basis": self.shape_basis.detach().cpu().float().numpy(),
+            "joint_regressor": self.joint_regressor.detach().cpu().float().numpy(),
+            "meta_json": np.array(json.dumps(meta)),
+        })
 
 
 def load_smpl_reimpl(path: str | Path, skeleton: nn.Module | None = None) -> SMPLReimpl:
@@ -177,13 +171,7 @@ def load_smpl_reimpl(path: str | Path, skeleton: nn.Module | None = None) -> SMP
     import blsm
 
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read a {FORMAT} file ({exc})") from exc
-    if str(arrays.get("format", "")) != FORMAT or int(arrays.get("format_version", -1)) != FORMAT_VERSION:
-        raise ValueError(f"{path}: not a {FORMAT} v{FORMAT_VERSION} file")
+    arrays = read_versioned_npz(path, FORMAT, FORMAT_VERSION, "SMPL-reimpl")
     for key in ("template", "shape_basis", "joint_regressor", "meta_json"):
         if key not in arrays:
             raise ValueError(f"{path}: missing array {key!r}")
@@ -424,37 +412,3 @@ def train_smpl_reimpl(
         "seconds": round(time.time() - t0, 2),
     }
     return SMPLReimpl(blsm_model, mean, basis, reg, meta)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``blsm train-smpl``: train SMPL-reimpl on the training split of a folder of registrations."""
-    import argparse
-
-    import blsm
-    from blsm.learn.registrations import load_registrations
-
-    ap = argparse.ArgumentParser(
-        prog="blsm train-smpl", description="Train the SMPL-reimpl baseline (Sec. 5.5.1)."
-    )
-    ap.add_argument(
-        "--model", default=None, help="BLSM model .npz sharing topology/skeleton (default: packaged)"
-    )
-    ap.add_argument("--registrations", required=True, help="folder of blsm-registration .npz files")
-    ap.add_argument("--num-coeffs", type=int, default=32, help="PCA shape components kept")
-    ap.add_argument("--iterations", default="100,100,100,300", help="Adam steps of the pose-fit stages")
-    ap.add_argument("--lm-iterations", type=int, default=25)
-    ap.add_argument("--out", required=True, help="output .npz")
-    args = ap.parse_args(argv)
-    try:
-        model = blsm.load(args.model)
-        regs = load_registrations(args.registrations, model.num_vertices).split("train")
-        iters = tuple(int(i) for i in args.iterations.split(","))
-        fit = FitConfig(iterations=iters, lm_iterations=args.lm_iterations)  # type: ignore[arg-type]
-        cfg = SMPLTrainConfig(fit=fit)
-        smpl = train_smpl_reimpl(model, regs.vertices, args.num_coeffs, regs.subjects, cfg)
-        print(smpl.save(args.out))
-        print(json.dumps(smpl.meta))
-    except ValueError as exc:
-        print(f"blsm train-smpl: error: {exc}")
-        return 2
-    return 0

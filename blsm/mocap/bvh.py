@@ -290,6 +290,33 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
     path = Path(path)
     if units != "auto" and units not in UNITS:
         raise ValueError(f"units must be 'auto' or one of {sorted(UNITS)}, got {units!r}")
+    lines = _read_lines(path)
+    skel, i = _parse_hierarchy(path, lines)
+    n_frames, frame_time, i = _parse_motion_header(path, lines, i)
+    data, first = _parse_frames(path, lines, i, n_frames, sum(len(c) for c in skel.channels))
+    unit = infer_units(skel) if units == "auto" else units
+    scale = UNITS[unit]
+    skel = replace(
+        skel,
+        offsets=skel.offsets * scale,
+        end_sites={j: o * scale for j, o in skel.end_sites.items()},
+    )
+    rot, trans = _local_transforms(skel, data, scale)
+    motion = BvhMotion(
+        path=path,
+        skeleton=skel,
+        rotations=rot,
+        translations=trans,
+        fps=1.0 / frame_time,
+        units=unit,
+        units_inferred=units == "auto",
+        first_frame_line=first,
+    )
+    return motion if fps is None else resample(motion, fps)
+
+
+def _read_lines(path: Path) -> list[str]:
+    """The file's lines; an unreadable or non-UTF-8 file is a :class:`BvhError`."""
     try:
         text = path.read_text(encoding="utf-8-sig", errors="strict")  # a leading BOM is not content
     except OSError as exc:
@@ -297,10 +324,16 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
     except UnicodeDecodeError as exc:
         line = path.read_bytes()[: exc.start].count(b"\n") + 1
         raise BvhError(f"{path}:{line}: not a text file (invalid UTF-8)") from None
-    lines = text.splitlines()
-    skel, i = _parse_hierarchy(path, lines)
+    return text.splitlines()
 
-    # MOTION header.
+
+def _parse_motion_header(path: Path, lines: list[str], i: int) -> tuple[int, float, int]:
+    """``MOTION``, ``Frames:`` and ``Frame Time:`` from line index ``i``.
+
+    Returns:
+        (number of frames, seconds per frame, index of the first frame line).
+    """
+
     def header(key: str) -> tuple[int, str]:
         nonlocal i
         while i < len(lines) and not lines[i].strip():
@@ -328,11 +361,18 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
         raise _fail(path, ln, f"Frame Time: {v!r} is not a number") from None
     if not (math.isfinite(frame_time) and frame_time > 0):
         raise _fail(path, ln, f"Frame Time: must be positive, got {v}")
+    return n_frames, frame_time, i
 
-    n_chan = sum(len(c) for c in skel.channels)
+
+def _parse_frames(path: Path, lines: list[str], i: int, n_frames: int, n_chan: int) -> tuple[np.ndarray, int]:
+    """The frame block from line index ``i``: exactly ``n_frames`` lines of ``n_chan`` finite values
+    (trailing blank lines are allowed, blank or missing lines inside the block are not).
+
+    Returns:
+        (values (n_frames, n_chan) float64, 1-based line number of the first frame).
+    """
     first = i + 1
     rows = lines[i : i + n_frames]
-    # Trailing blank lines are allowed; blank or missing lines inside the frame block are not.
     if len(rows) < n_frames or any(not r.strip() for r in rows):
         k = next((k for k, r in enumerate(rows) if not r.strip()), len(rows))
         raise _fail(
@@ -370,15 +410,13 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
         k, c = np.argwhere(huge)[0]
         msg = f"frame {k + 1}: value {data[k, c]:g} in channel {c + 1} is out of range (|v| > {MAX_ABS:g})"
         raise _fail(path, first + int(k), msg)
+    return data, first
 
-    unit = infer_units(skel) if units == "auto" else units
-    scale = UNITS[unit]
-    skel = replace(
-        skel,
-        offsets=skel.offsets * scale,
-        end_sites={j: o * scale for j, o in skel.end_sites.items()},
-    )
-    n_j = len(skel.names)
+
+def _local_transforms(skel: BvhSkeleton, data: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Local rotations (T, J, 3, 3) and translations (T, J, 3) in metres of the frame values (T, C);
+    ``skel`` has its offsets in metres already, ``scale`` converts the position channels."""
+    n_frames, n_j = len(data), len(skel.names)
     rot = np.broadcast_to(np.eye(3), (n_frames, n_j, 3, 3)).copy()
     trans = np.broadcast_to(skel.offsets, (n_frames, n_j, 3)).copy()
     col = 0
@@ -392,17 +430,7 @@ def read_bvh(path: str | Path, units: str = "auto", fps: float | None = None) ->
             # Upper-case sequence = intrinsic rotations, composed in listed order (R = R1 R2 R3).
             rot[:, j] = Rotation.from_euler(order, data[:, rot_cols], degrees=True).as_matrix()
         col += len(chans)
-    motion = BvhMotion(
-        path=path,
-        skeleton=skel,
-        rotations=rot,
-        translations=trans,
-        fps=1.0 / frame_time,
-        units=unit,
-        units_inferred=units == "auto",
-        first_frame_line=first,
-    )
-    return motion if fps is None else resample(motion, fps)
+    return rot, trans
 
 
 def resample(motion: BvhMotion, fps: float) -> BvhMotion:

@@ -41,7 +41,7 @@ import scipy.linalg
 import torch
 from torch import nn
 
-from blsm.io import atomic_write, read_npz
+from blsm.io import read_versioned_npz, write_versioned_npz
 from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
 
 FORMAT = "blsm-pose-prior"
@@ -242,16 +242,12 @@ class PosePrior(nn.Module):
         path = Path(path)
         arrays = {key: _as_float64(getattr(self, key)) for key in _ARRAYS}
         _validate(arrays, self.dof_names, str(path))
-        with atomic_write(path) as fh:
-            np.savez_compressed(
-                fh,
-                format=np.array(FORMAT),
-                format_version=np.array(FORMAT_VERSION),
-                dof_names_json=np.array(json.dumps(self.dof_names)),
-                meta_json=np.array(json.dumps(self.meta, sort_keys=True)),
-                **arrays,
-            )
-        return path
+        entries = {
+            "dof_names_json": np.array(json.dumps(self.dof_names)),
+            "meta_json": np.array(json.dumps(self.meta, sort_keys=True)),
+            **arrays,
+        }
+        return write_versioned_npz(path, FORMAT, FORMAT_VERSION, entries)
 
     @classmethod
     def load(cls, path: str | Path) -> PosePrior:
@@ -268,16 +264,7 @@ class PosePrior(nn.Module):
                 or inconsistent file.
         """
         path = Path(path)
-        raw = read_npz(path, "pose prior")
-        fmt = str(raw["format"]) if "format" in raw else None
-        if fmt != FORMAT:
-            raise ValueError(f"{path}: not a BLSM pose prior file (format={fmt!r})")
-        try:
-            version = int(raw["format_version"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"{path}: bad or missing format_version") from exc
-        if version != FORMAT_VERSION:
-            raise ValueError(f"{path}: format_version {version} is not supported (expected {FORMAT_VERSION})")
+        raw = read_versioned_npz(path, FORMAT, FORMAT_VERSION, "pose prior")
         try:
             dof_names = json.loads(str(raw["dof_names_json"]))
             meta = json.loads(str(raw["meta_json"]))

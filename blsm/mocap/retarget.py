@@ -423,7 +423,6 @@ def retarget(
         :class:`Retargeted`.
     """
     smap = skeleton_map if skeleton_map is not None else select_map(motion)
-    dtype = model.template.dtype
     names = motion.skeleton.names
     missing = [j for j in smap.source_joints() if j not in names]
     if missing:
@@ -432,130 +431,16 @@ def retarget(
             f"mapping table {smap.name!r}"
         )
     _, src_pos = motion.global_transforms()  # (T, Js, 3) metres
-    n_frames = src_pos.shape[0]
-
     pairs = list(smap.segments) + list(smap.twist)
-    n_seg = len(smap.segments)
-    blsm_specs = [p.blsm_from for p in pairs] + [p.blsm_to for p in pairs]
-    points = _BlsmPoints(model, blsm_specs)
-    n_pair = len(pairs)
-    weights = torch.tensor([p.weight for p in pairs], dtype=dtype)
-
-    smix = _source_mix(names, [p.source_from for p in pairs] + [p.source_to for p in pairs])
-    sp = np.einsum("pj,tjc->tpc", smix, src_pos)
-    src_dir_np = sp[:, n_pair:] - sp[:, :n_pair]
-    src_len = np.linalg.norm(src_dir_np, axis=-1)
-    if (src_len < 1e-6).any():
-        t, i = np.argwhere(src_len < 1e-6)[0]
-        raise BvhError(
-            f"{motion.path}:{motion.first_frame_line + int(t)}: source points of {pairs[i].label} "
-            f"coincide in frame {t + 1}; the mapping table {smap.name!r} does not fit this skeleton"
-        )
-    src_dir = torch.as_tensor(src_dir_np / src_len[..., None], dtype=dtype)
-
-    limits = model.dof_limits
-    scales = local_scales(model.bone_mean[None], model.parents_t)
-    heads, frames, parents = model.heads, model.frames, model.parents
-    root_j = model.bone_names.index(smap.root_blsm)
-    if root_j != 0:
+    src_dir = _source_directions(motion, smap, pairs, src_pos, model.template.dtype)
+    if model.bone_names.index(smap.root_blsm) != 0:
         raise ValueError(f"{smap.path}: root.blsm must be the model's root bone {model.bone_names[0]!r}")
-
-    def pose_points(x: torch.Tensor, g_rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        theta = angles_from_unconstrained(x, limits)
-        rot = joint_rotations(theta, model.dof_slots, model.dof_axis, model.dof_sign)
-        lin, off, joints = forward_kinematics(
-            rot, scales.expand(x.shape[0], -1), heads, frames, parents, g_rot
-        )
-        return points(lin, off, joints), theta
-
-    # Rest directions of the BLSM points, for the Kabsch initialisation of the root rotation.
-    x_rest = unconstrained_from_angles(torch.zeros(1, len(limits), dtype=dtype), limits)
-    rest_pts, _ = pose_points(x_rest, torch.eye(3, dtype=dtype)[None])
-    rest_dir, _ = _unit(rest_pts[0, n_pair:] - rest_pts[0, :n_pair])
-    orient_w = torch.tensor([1.0 if p.label in smap.orient else 0.0 for p in pairs], dtype=dtype)
-    r0_all = _kabsch(rest_dir, src_dir, orient_w)  # (T, 3, 3)
-
-    def frame_loss(x: torch.Tensor, g_rot: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-        pts, theta = pose_points(x, g_rot)
-        u, _ = _unit(pts[:, n_pair:] - pts[:, :n_pair])
-        return (1 - (u * target).sum(-1)) @ weights + ridge * (theta**2).sum(-1)
-
-    def solve(x0: torch.Tensor, r0: torch.Tensor, sl: slice, steps: int) -> tuple[torch.Tensor, torch.Tensor]:
-        x = x0.clone().requires_grad_(True)
-        r = r0.clone().requires_grad_(True)
-        base, target = r0_all[sl], src_dir[sl]
-        opt = torch.optim.Adam([x, r], lr=lr)
-        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=lr * 0.05)
-        for _ in range(steps):
-            opt.zero_grad(set_to_none=True)
-            frame_loss(x, base @ axis_angle_to_rotation_matrix(r), target).sum().backward()
-            opt.step()
-            sched.step()
-        return x.detach(), r.detach()
-
-    def losses(x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
-        with torch.no_grad():
-            return torch.cat(
-                [
-                    frame_loss(x[s], r0_all[s] @ axis_angle_to_rotation_matrix(r[s]), src_dir[s])
-                    for s in _blocks(n_frames, block)
-                ]
-            )
-
-    # 1. Every frame from the rest pose, in blocks of frames solved together.
-    x_all = x_rest.expand(n_frames, -1).clone()
-    r_all = torch.zeros(n_frames, 3, dtype=dtype)
-    for s in _blocks(n_frames, block):
-        x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, first_iters)
-    # 2. Warm starts from the neighbouring frames: a frame takes its neighbour's pose where that
-    #    fits it better (repeated, so a good solution travels along the clip), then all refine.
-    for _ in range(sweeps):
-        cur = losses(x_all, r_all)
-        for _ in range(hops):
-            for shift in (1, -1):
-                cand = torch.roll(x_all, shift, 0)
-                lc = losses(cand, r_all)
-                lc[0 if shift == 1 else -1] = float("inf")
-                better = lc < cur - 1e-7
-                x_all[better], cur[better] = cand[better], lc[better]
-        for s in _blocks(n_frames, block):
-            x_all[s], r_all[s] = solve(x_all[s], r_all[s], s, iters)
-    pose = x_all
-    g_out = r0_all @ axis_angle_to_rotation_matrix(r_all)
-
+    fit = _DirectionFit(model, smap, pairs, src_dir, ridge=ridge, lr=lr, block=block)
+    pose, g_out = fit.solve_clip(first_iters, sweeps, hops, iters)
     with torch.no_grad():
-        pts, theta = pose_points(pose, g_out)
-    blsm_from, blsm_to = pts[:, :n_seg], pts[:, n_pair : n_pair + n_seg]
-    u, seg_len = _unit(blsm_to - blsm_from)
-    cos = (u * src_dir[:, :n_seg]).sum(-1).clamp(-1, 1)
-    seg_err = torch.rad2deg(torch.acos(cos)).numpy()
-
-    # MPJPE: rebuild the source chain from the BLSM root with the BLSM segment lengths.
-    chain = {smap.root_blsm: blsm_from[:, 0]}  # load_map checked: segment 0 starts at the root
-    for i, s in enumerate(smap.segments):
-        chain[s.blsm_to] = chain[s.blsm_from] + seg_len[:, i, None] * src_dir[:, i]
-    rebuilt = torch.stack([chain[s.blsm_to] for s in smap.segments], 1)
-    mpjpe = (rebuilt - blsm_to).norm(dim=-1).mean(-1) * 1000.0
-    source_points = torch.cat([blsm_from[:, :1], rebuilt], 1)
-
-    # Root translation: the source root scaled by the leg-length ratio; then the clip is moved
-    # vertically so that the mean body's lowest vertex is on the floor y = 0 in the 5th percentile
-    # of frames (robust to jumps and to source floors that are not at y = 0).
-    li = [names.index(n) for n in smap.leg_source]
-    src_leg = np.linalg.norm(np.diff(src_pos[:, li], axis=1), axis=-1).sum(1).mean()
-    bi = [model.bone_names.index(n) for n in smap.leg_blsm]
-    blsm_leg = float((heads[bi[1:]] - heads[bi[:-1]]).norm(dim=-1).sum())
-    ratio = blsm_leg / float(src_leg)
-    root_src = src_pos[:, names.index(smap.root_source)]
-    transl = ratio * root_src - heads[0].double().numpy()
-    lowest = []
-    with torch.no_grad():
-        for s in _blocks(n_frames, 256):
-            out = model(pose=pose[s], global_orient=_matrix_to_rotvec(g_out[s]))
-            lowest.append(out.vertices[..., 1].amin(-1).double().numpy())
-    low = np.concatenate(lowest) + transl[:, 1]
-    transl[:, 1] -= np.percentile(low, 5)
-
+        pts, theta = fit.pose_points(pose, g_out)
+    seg_err, mpjpe, source_points = _residuals(smap, pts, src_dir, len(pairs))
+    transl, ratio = _root_translation(model, smap, names, src_pos, pose, g_out)
     rotvec = _matrix_to_rotvec(g_out).double().numpy()
     return Retargeted(
         pose=pose.double().numpy(),
@@ -570,3 +455,155 @@ def retarget(
         segment_err_deg=seg_err,
         source_points=source_points.double().numpy(),
     )
+
+
+def _source_directions(motion: BvhMotion, smap: SkeletonMap, pairs: list[Pair], src_pos: np.ndarray,
+                       dtype: torch.dtype) -> torch.Tensor:
+    """(T, P, 3) unit directions of the mapped source segments and twist pairs in every frame."""
+    n_pair = len(pairs)
+    smix = _source_mix(motion.skeleton.names, [p.source_from for p in pairs] + [p.source_to for p in pairs])
+    sp = np.einsum("pj,tjc->tpc", smix, src_pos)
+    src_dir_np = sp[:, n_pair:] - sp[:, :n_pair]
+    src_len = np.linalg.norm(src_dir_np, axis=-1)
+    if (src_len < 1e-6).any():
+        t, i = np.argwhere(src_len < 1e-6)[0]
+        raise BvhError(
+            f"{motion.path}:{motion.first_frame_line + int(t)}: source points of {pairs[i].label} "
+            f"coincide in frame {t + 1}; the mapping table {smap.name!r} does not fit this skeleton"
+        )
+    return torch.as_tensor(src_dir_np / src_len[..., None], dtype=dtype)
+
+
+class _DirectionFit:
+    """The per-frame problem: the mean body's segment and twist directions against the source's.
+
+    The loss of a frame is ``sum_p w_p (1 - u_p . d_p) + ridge * |theta|^2`` over the pairs p, with
+    u the BLSM directions and d the source's; the root rotation is a Kabsch start (on the
+    ``orient`` pairs) times a free axis-angle correction.
+    """
+
+    def __init__(self, model: Any, smap: SkeletonMap, pairs: list[Pair], src_dir: torch.Tensor, *,
+                 ridge: float, lr: float, block: int) -> None:
+        dtype = model.template.dtype
+        self.model, self.src_dir, self.ridge, self.lr, self.block = model, src_dir, ridge, lr, block
+        self.n_pair = len(pairs)
+        self.points = _BlsmPoints(model, [p.blsm_from for p in pairs] + [p.blsm_to for p in pairs])
+        self.weights = torch.tensor([p.weight for p in pairs], dtype=dtype)
+        self.scales = local_scales(model.bone_mean[None], model.parents_t)
+        # Rest directions of the BLSM points, for the Kabsch initialisation of the root rotation.
+        limits = model.dof_limits
+        self.x_rest = unconstrained_from_angles(torch.zeros(1, len(limits), dtype=dtype), limits)
+        rest_pts, _ = self.pose_points(self.x_rest, torch.eye(3, dtype=dtype)[None])
+        rest_dir, _ = _unit(rest_pts[0, self.n_pair :] - rest_pts[0, : self.n_pair])
+        orient_w = torch.tensor([1.0 if p.label in smap.orient else 0.0 for p in pairs], dtype=dtype)
+        self.r0_all = _kabsch(rest_dir, src_dir, orient_w)  # (T, 3, 3)
+
+    def pose_points(self, x: torch.Tensor, g_rot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 2P, 3) BLSM points and (B, 47) angles of the unconstrained atoms ``x`` (B, 47), root
+        rotation ``g_rot`` (B, 3, 3)."""
+        m = self.model
+        theta = angles_from_unconstrained(x, m.dof_limits)
+        rot = joint_rotations(theta, m.dof_slots, m.dof_axis, m.dof_sign)
+        lin, off, joints = forward_kinematics(
+            rot, self.scales.expand(x.shape[0], -1), m.heads, m.frames, m.parents, g_rot
+        )
+        return self.points(lin, off, joints), theta
+
+    def frame_loss(self, x: torch.Tensor, g_rot: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        pts, theta = self.pose_points(x, g_rot)
+        u, _ = _unit(pts[:, self.n_pair :] - pts[:, : self.n_pair])
+        return (1 - (u * target).sum(-1)) @ self.weights + self.ridge * (theta**2).sum(-1)
+
+    def solve(
+        self, x0: torch.Tensor, r0: torch.Tensor, sl: slice, steps: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Adam on the frames ``sl`` (cosine-decayed rate), from atoms ``x0`` and corrections ``r0``."""
+        x = x0.clone().requires_grad_(True)
+        r = r0.clone().requires_grad_(True)
+        base, target = self.r0_all[sl], self.src_dir[sl]
+        opt = torch.optim.Adam([x, r], lr=self.lr)
+        sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=self.lr * 0.05)
+        for _ in range(steps):
+            opt.zero_grad(set_to_none=True)
+            self.frame_loss(x, base @ axis_angle_to_rotation_matrix(r), target).sum().backward()
+            opt.step()
+            sched.step()
+        return x.detach(), r.detach()
+
+    def losses(self, x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        """(T,) the loss of every frame."""
+        with torch.no_grad():
+            return torch.cat([
+                self.frame_loss(x[s], self.r0_all[s] @ axis_angle_to_rotation_matrix(r[s]), self.src_dir[s])
+                for s in _blocks(len(x), self.block)
+            ])
+
+    def solve_clip(
+        self, first_iters: int, sweeps: int, hops: int, iters: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Atoms (T, 47) and root rotations (T, 3, 3) of every frame."""
+        n_frames = self.src_dir.shape[0]
+        # 1. Every frame from the rest pose, in blocks of frames solved together.
+        x_all = self.x_rest.expand(n_frames, -1).clone()
+        r_all = torch.zeros(n_frames, 3, dtype=x_all.dtype)
+        for s in _blocks(n_frames, self.block):
+            x_all[s], r_all[s] = self.solve(x_all[s], r_all[s], s, first_iters)
+        # 2. Warm starts from the neighbouring frames: a frame takes its neighbour's pose where that
+        #    fits it better (repeated, so a good solution travels along the clip), then all refine.
+        for _ in range(sweeps):
+            cur = self.losses(x_all, r_all)
+            for _ in range(hops):
+                for shift in (1, -1):
+                    cand = torch.roll(x_all, shift, 0)
+                    lc = self.losses(cand, r_all)
+                    lc[0 if shift == 1 else -1] = float("inf")
+                    better = lc < cur - 1e-7
+                    x_all[better], cur[better] = cand[better], lc[better]
+            for s in _blocks(n_frames, self.block):
+                x_all[s], r_all[s] = self.solve(x_all[s], r_all[s], s, iters)
+        return x_all, self.r0_all @ axis_angle_to_rotation_matrix(r_all)
+
+
+def _residuals(smap: SkeletonMap, pts: torch.Tensor, src_dir: torch.Tensor,
+               n_pair: int) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+    """Per-segment direction errors (T, S) in degrees, MPJPE (T,) in mm against the source chain
+    rebuilt from the BLSM root with the BLSM segment lengths, and that chain (T, S + 1, 3)."""
+    n_seg = len(smap.segments)
+    blsm_from, blsm_to = pts[:, :n_seg], pts[:, n_pair : n_pair + n_seg]
+    u, seg_len = _unit(blsm_to - blsm_from)
+    cos = (u * src_dir[:, :n_seg]).sum(-1).clamp(-1, 1)
+    seg_err = torch.rad2deg(torch.acos(cos)).numpy()
+    chain = {smap.root_blsm: blsm_from[:, 0]}  # load_map checked: segment 0 starts at the root
+    for i, s in enumerate(smap.segments):
+        chain[s.blsm_to] = chain[s.blsm_from] + seg_len[:, i, None] * src_dir[:, i]
+    rebuilt = torch.stack([chain[s.blsm_to] for s in smap.segments], 1)
+    mpjpe = (rebuilt - blsm_to).norm(dim=-1).mean(-1) * 1000.0
+    return seg_err, mpjpe, torch.cat([blsm_from[:, :1], rebuilt], 1)
+
+
+def _root_translation(
+    model: Any, smap: SkeletonMap, names: list[str], src_pos: np.ndarray, pose: torch.Tensor,
+    g_out: torch.Tensor,
+) -> tuple[np.ndarray, float]:
+    """Root translation (T, 3) in metres and the leg-length ratio BLSM / source.
+
+    The source root scaled by the leg-length ratio; then the clip is moved vertically so that the
+    mean body's lowest vertex is on the floor y = 0 in the 5th percentile of frames (robust to jumps
+    and to source floors that are not at y = 0).
+    """
+    heads = model.heads
+    li = [names.index(n) for n in smap.leg_source]
+    src_leg = np.linalg.norm(np.diff(src_pos[:, li], axis=1), axis=-1).sum(1).mean()
+    bi = [model.bone_names.index(n) for n in smap.leg_blsm]
+    blsm_leg = float((heads[bi[1:]] - heads[bi[:-1]]).norm(dim=-1).sum())
+    ratio = blsm_leg / float(src_leg)
+    root_src = src_pos[:, names.index(smap.root_source)]
+    transl = ratio * root_src - heads[0].double().numpy()
+    lowest = []
+    with torch.no_grad():
+        for s in _blocks(len(pose), 256):
+            out = model(pose=pose[s], global_orient=_matrix_to_rotvec(g_out[s]))
+            lowest.append(out.vertices[..., 1].amin(-1).double().numpy())
+    low = np.concatenate(lowest) + transl[:, 1]
+    transl[:, 1] -= np.percentile(low, 5)
+    return transl, ratio

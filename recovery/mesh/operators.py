@@ -5,7 +5,7 @@
 - the mesh hierarchy of Sec. 4.3.2 (:func:`recovery.mesh.sampling.build_levels`) made on the
   template posed in :data:`REFERENCE_ANGLES` (thesis Fig. 4.2: elbows, knees, hips, shoulders,
   wrists and ankles bent, so that quadric edge collapse keeps vertices around the joints);
-- the spiral sequences of every level (:func:`recovery.mesh.spiral.spiral_sequences`), with the
+- the spiral sequences of every level (:func:`recovery.mesh.spiral_sequences.spiral_sequences`), with the
   level's ring count (Table 4.1's kernel size) and fixed length;
 - the **keypoint regressor** ``J`` (K, V): keypoints as a linear function of the vertices. The
   model's surface keypoints are already barycentric combinations of vertices (copied exactly);
@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from recovery.mesh.sampling import Level, build_levels
-from recovery.mesh.spiral import spiral_sequences
+from recovery.mesh.spiral_sequences import spiral_sequences
 
 OPS_VERSION = 1
 

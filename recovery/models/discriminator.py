@@ -4,7 +4,7 @@ HMR judges SMPL poses with per-joint discriminators and a pose embedding; every 
 by construction (Eq. 6), so one network suffices: two fully connected layers of 1024 units that take
 the 47 pose values and output one value. The input is each atom's angle normalised by its range,
 ``2 (a - lo) / (hi - lo) - 1`` in [-1, 1], so that no atom dominates by the width of its range.
-Trained with the least-squares GAN losses of HMR (:mod:`recovery.losses`).
+Trained with the least-squares GAN losses of HMR (:mod:`recovery.models.losses`).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from recovery.mesh.operators import MeshOperators
-from recovery.models.spiral import Pool, SpiralConv, Unpool
+from recovery.models.spiral_conv import Pool, SpiralConv, Unpool
 
 
 def _t(a) -> torch.Tensor:  # noqa: ANN001 - numpy array
@@ -44,7 +44,7 @@ class MeshNormalizer(nn.Module):
 
 
 class SpiralEncoder(nn.Module):
-    """(B, V, 3) normalised vertices -> (B, latent) (vertex-major inside, :mod:`recovery.models.spiral`)."""
+    """(B, V, 3) normalised vertices -> (B, latent) (vertex-major inside, :mod:`recovery.models.spiral_conv`)."""
 
     def __init__(self, ops: MeshOperators, channels: Sequence[int] = (16, 32, 64, 128), latent: int = 128) -> None:
         super().__init__()

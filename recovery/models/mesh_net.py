@@ -6,14 +6,14 @@ Backbone features -> two FC layers (ReLU) -> the 1024-D image feature; from it
   vertices by the spiral decoder (:class:`recovery.models.mesh_ae.SpiralDecoder`) and the
   training meshes' normalisation;
 - the **camera branch**: one FC layer to 7 values, a quaternion ``(w, x, y, z)`` rotating the body
-  frame into the camera frame and the weak-perspective ``(s, tx, ty)`` of :mod:`recovery.geometry`
+  frame into the camera frame and the weak-perspective ``(s, tx, ty)`` of :mod:`recovery.utils.geometry`
   (``tx, ty``: where the pelvis projects, crop coordinates in [-1, 1]; ``s``: the scale, pelvis depth
   ``2 f / (S s)``). Its bias starts at the training set's mean camera and a rotation upright and
   facing the camera.
 
 Projection (Eq. 4.8's Pi): weak perspective, ``u = S / 2 (1 + tx + s (R v)_x)`` and likewise v, for
 points ``v`` relative to the pelvis. For overlays and segmentation the same camera is turned into a
-camera-frame translation with ``K_crop`` (:func:`recovery.geometry.cam_to_translation`).
+camera-frame translation with ``K_crop`` (:func:`recovery.utils.geometry.cam_to_translation`).
 """
 
 from __future__ import annotations
@@ -25,8 +25,9 @@ from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_
 from torch import nn
 
 from recovery.mesh.operators import MeshOperators
-from recovery.models.backbone import build_backbone
+from recovery.models.backbones import build_backbone
 from recovery.models.mesh_ae import MeshNormalizer, SpiralDecoder
+from recovery.utils.geometry import UPRIGHT_FACING_CAMERA
 
 
 @dataclass
@@ -60,7 +61,7 @@ class MeshRegressor(nn.Module):
     """Backbone + FC + spiral decoder + camera branch (module docstring).
 
     Args:
-        backbone: a name of :func:`recovery.models.backbone.build_backbone`.
+        backbone: a name of :func:`recovery.models.backbones.build_backbone`.
         ops: the template's mesh operators.
         mean, std: (V, 3) the training meshes' normalisation.
         cam_init: (3,) the mean ``(s, tx, ty)`` of the training crops.
@@ -80,8 +81,7 @@ class MeshRegressor(nn.Module):
         self.decoder = SpiralDecoder(ops, channels, latent)
         self.normalizer = MeshNormalizer(mean, std)
         nn.init.xavier_uniform_(self.to_camera.weight, gain=0.01)
-        upright = torch.diag(torch.tensor([1.0, -1.0, -1.0]))  # the body seen upright, facing the camera
-        q0 = rotation_matrix_to_quaternion(upright[None])[0]
+        q0 = rotation_matrix_to_quaternion(UPRIGHT_FACING_CAMERA[None])[0]  # upright, facing the camera
         with torch.no_grad():
             self.to_camera.bias.copy_(torch.cat([q0, cam_init.float()]))
 

@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/evaluate.py: held-out errors, tables and plots (thesis Sec. 5.5.2)."""
+"""Tests of blsm/learn/evaluate.py: held-out errors, tables and plots (thesis Sec. 5.5.2), and ``blsm evaluate``."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from blsm.cli import main as blsm_main
 from blsm.io import atomic_write
 from blsm.learn.evaluate import (
     EvalConfig,
@@ -15,12 +16,17 @@ from blsm.learn.evaluate import (
     error_stats,
     evaluate,
     line_plot,
-    main,
     write_report,
 )
 from blsm.learn.fit import BLSMFittable, FitConfig
-from blsm.learn.registrations import load_registrations, spread_over_subjects
+from blsm.learn.registrations import load_registration_set, spread_over_subjects
 from blsm.learn.smpl_reimpl import SMPLReimpl, SMPLReimplFittable, ring_regressor
+
+
+def main(argv: list[str]) -> int:
+    """``blsm evaluate ARGV`` (:mod:`blsm.learn.cli`)."""
+    return blsm_main(["evaluate", *argv])
+
 
 FIT = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=15)
 
@@ -64,7 +70,7 @@ def test_error_stats_in_mm():
 
 def test_evaluate_writes_table_plot_and_json(model, baseline, tmp_path, gen):
     _write_regs(model, tmp_path / "regs", gen)
-    regs = load_registrations(tmp_path / "regs", model.num_vertices)
+    regs = load_registration_set(tmp_path / "regs", model.num_vertices)
     assert regs.subjects == ["s0", "s0", "s1", "s1", "s2", "s2"] and regs.pose_ids[:2] == ["0", "1"]
     test = regs.split("test")
     assert len(test.names) == 4
@@ -81,12 +87,12 @@ def test_evaluate_writes_table_plot_and_json(model, baseline, tmp_path, gen):
     text = (tmp_path / "docs" / "eval.md").read_text()
     s3 = report.shape["BLSM-linear"][3]
     assert f"{s3.mean:.2f} ± {s3.sd:.2f}" in text and f"{s3.auc:.3f}" in text
-    assert "eval_shape.png" in text and "Pose generalisation" in text
-    data = json.loads((tmp_path / "docs" / "eval.json").read_text())
+    assert "](figures/eval_shape.png)" in text and "Pose generalisation" in text
+    data = json.loads((tmp_path / "docs" / "figures" / "eval.json").read_text())
     assert data["shape"]["SMPL-reimpl"]["1"]["mean"] == pytest.approx(report.shape["SMPL-reimpl"][1].mean)
     from PIL import Image
 
-    img = np.asarray(Image.open(tmp_path / "docs" / "eval_shape.png"))
+    img = np.asarray(Image.open(tmp_path / "docs" / "figures" / "eval_shape.png"))
     assert img.shape == (480, 720, 3) and (img != 255).any()
 
 
@@ -98,7 +104,7 @@ def test_main_end_to_end(model, baseline, tmp_path, gen):
         "--registrations", str(tmp_path / "regs"), "--baseline", str(tmp_path / "smpl.npz"),
         "--out", str(out), "--ks", "2", "--iterations", "10,10,10,20", "--lm-iterations", "2", "--no-pose",
     ])
-    assert rc == 0 and out.is_file() and (tmp_path / "docs" / "blsm_evaluation_shape.png").is_file()
+    assert rc == 0 and out.is_file() and (tmp_path / "docs" / "figures" / "blsm_evaluation_shape.png").is_file()
     assert "| 2 |" in out.read_text()
     assert main(["--registrations", str(tmp_path / "nope"), "--out", str(out)]) == 2
 
@@ -114,27 +120,6 @@ def test_line_plot_draws_series(tmp_path):
     assert blue > 100 and red > 100
 
 
-def test_bad_registration_files(model, tmp_path):
-    with pytest.raises(ValueError, match="not a folder"):
-        load_registrations(tmp_path / "missing", model.num_vertices)
-    (tmp_path / "empty").mkdir()
-    with pytest.raises(ValueError, match="no .npz"):
-        load_registrations(tmp_path / "empty", model.num_vertices)
-    (tmp_path / "bad").mkdir()
-    np.savez(tmp_path / "bad" / "r.npz", vertices=np.zeros((5, 3), np.float32))
-    with pytest.raises(ValueError, match="r.npz"):
-        load_registrations(tmp_path / "bad", model.num_vertices)
-    (tmp_path / "bad2").mkdir()
-    np.savez(tmp_path / "bad2" / "q.npz", faces=np.zeros((5, 3)))
-    with pytest.raises(ValueError, match="q.npz: missing array 'vertices'"):
-        load_registrations(tmp_path / "bad2", model.num_vertices)
-    (tmp_path / "bad3").mkdir()
-    np.savez(tmp_path / "bad3" / "s.npz", vertices=model.template.numpy(),
-             meta=np.array(json.dumps({"split": "validation"})))
-    with pytest.raises(ValueError, match="s.npz: split"):
-        load_registrations(tmp_path / "bad3", model.num_vertices)
-
-
 def test_fitting_the_true_bodies_removes_the_registration_error(model, tmp_path, gen):
     # Bodies of the first 2 bone coefficients (what the test's short fit reaches), registered with
     # 4 mm noise: 6.4 mm mean distance between registration and truth.
@@ -148,7 +133,7 @@ def test_fitting_the_true_bodies_removes_the_registration_error(model, tmp_path,
         meta = {"subject": f"s{s}", "pose_id": 0, "split": "test"}
         with atomic_write(folder / f"s{s}.npz") as fh:
             np.savez(fh, vertices=noisy, meta=np.array(json.dumps(meta)), gt_points=v)
-    regs = load_registrations(folder, model.num_vertices)
+    regs = load_registration_set(folder, model.num_vertices)
     k = 2
     fit = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=20)  # converges on these bodies
     cfg = EvalConfig(ks=(k,), fit=fit, batch=2, pose_generalisation=False)
@@ -175,7 +160,7 @@ def test_main_fits_other_models_alongside(model, tmp_path, gen):
             "--iterations", "10,10,10,20", "--lm-iterations", "2", "--no-pose", "--targets", "ground-truth"]
     io.save_model(io.read_model(DEFAULT_MODEL), tmp_path / "other.npz")
     assert main([*args, "--also", f"other={tmp_path / 'other.npz'}"]) == 0
-    data = json.loads(out.with_suffix(".json").read_text())
+    data = json.loads((out.parent / "figures" / "eval.json").read_text())
     assert set(data["shape"]) == {"BLSM-linear", "other"} and data["info"]["targets"] == "ground-truth"
     assert main([*args, "--also", "no-equals-sign"]) == 2
 
@@ -200,4 +185,4 @@ def test_spread_takes_registrations_round_robin_over_subjects(model, tmp_path, g
     for flag, subjects in (([], 2), (["--spread"], 3)):
         out = tmp_path / f"eval{len(flag)}.md"
         assert main([*base, *flag, "--out", str(out)]) == 0
-        assert json.loads(out.with_suffix(".json").read_text())["info"]["subjects"] == subjects
+        assert json.loads((out.parent / "figures" / out.with_suffix(".json").name).read_text())["info"]["subjects"] == subjects

@@ -174,10 +174,10 @@ def test_bad_inputs(tmp_path):
     with pytest.raises(ValueError, match="nolm.npz: scan has no located landmarks"):
         load_scan(tmp_path / "nolm.npz", require_landmarks=True)
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(ValueError, match="junk.npz: unreadable"):
+    with pytest.raises(ValueError, match="junk.npz: not a readable .npz scan file"):
         load_scan(tmp_path / "junk.npz")
     np.savez(tmp_path / "other.npz", format="blsm-model")
-    with pytest.raises(ValueError, match="not a blsm-scan"):
+    with pytest.raises(ValueError, match="other.npz: not a BLSM scan file"):
         load_scan(tmp_path / "other.npz")
     with pytest.raises(ValueError, match="does not exist"):
         load_scan(tmp_path / "missing.obj")
@@ -193,3 +193,9 @@ def test_names_known():
     names = landmark_names()
     assert "sellion" in names and "acromion_l" in names and "acromion_r" in names
     assert len(set(names)) == len(names)
+
+
+def test_landmarks_command_rewrites_the_packaged_table(tmp_path):
+    """``python -m blsm.learn.landmarks --out FILE`` writes the packaged table again, unchanged."""
+    assert L.main(["--out", str(tmp_path / "lm.yaml")]) == 0
+    assert (tmp_path / "lm.yaml").read_text() == L.LANDMARKS_YAML.read_text()

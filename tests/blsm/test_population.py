@@ -136,10 +136,12 @@ def test_no_artefacts_and_bad_args(tmp_path, model):
 
 
 def test_main_cli(tmp_path):
-    assert P.main(["make", "--out", str(tmp_path / "c"), "--subjects", "1", "--seed", "2"]) == 0
+    from blsm.cli import main
+
+    assert main(["scans", "make", "--out", str(tmp_path / "c"), "--subjects", "1", "--seed", "2"]) == 0
     assert (tmp_path / "c" / "scans" / "s00000_00.npz").is_file()
     with pytest.raises(SystemExit):
-        P.main(["make", "--subjects", "1"])
+        main(["scans", "make", "--subjects", "1"])
 
 
 def test_poses_from_motion_library(tmp_path, model):

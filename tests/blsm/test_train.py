@@ -16,6 +16,7 @@ import torch
 import blsm
 from blsm import io
 from blsm.learn import train as T
+from blsm.learn.bases import bone_mirror_index
 from blsm.mocap.prior import load_prior
 from blsm.model import BLSM, DEFAULT_MODEL
 
@@ -108,7 +109,7 @@ def test_weights_normalised_nonnegative_symmetric(learned, model):
     assert (w >= 0).all()
     np.testing.assert_allclose(w.sum(1), 1.0, atol=1e-5)
     mirror = data.arrays["vertex_mirror"]
-    bm = T.bone_mirror_index(model.bone_names)
+    bm = bone_mirror_index(model.bone_names)
     np.testing.assert_allclose(w[mirror][:, bm], w, atol=1e-6)
 
 
@@ -122,7 +123,7 @@ def test_bases_symmetric(learned, model):
     t = data.arrays["template"]
     np.testing.assert_allclose(t[mirror] * flip, t, atol=1e-6)
     bb = data.arrays["bone_basis"]
-    np.testing.assert_allclose(bb[:, T.bone_mirror_index(model.bone_names)], bb, atol=1e-6)
+    np.testing.assert_allclose(bb[:, bone_mirror_index(model.bone_names)], bb, atol=1e-6)
 
 
 def test_saved_model_loads_and_runs(learned, tmp_path):
@@ -134,69 +135,6 @@ def test_saved_model_loads_and_runs(learned, tmp_path):
     out = m(bone=torch.randn(2, 10), shape=torch.randn(2, 12), pose=torch.randn(2, 47))
     assert out.vertices.shape == (2, 7002, 3) and torch.isfinite(out.vertices).all()
     assert m.population_bone.shape == (16, 10) and m.population_shape.shape == (16, 12)
-
-
-def test_bone_pca_two_components():
-    gen = torch.Generator().manual_seed(0)
-    mirror = T.bone_mirror_index(blsm.skeleton.BONE_NAMES)
-    basis = torch.rand(2, 20, generator=gen, dtype=torch.float64) * 0.02
-    basis = 0.5 * (basis + basis[:, mirror])
-    mean = 0.1 + torch.rand(20, generator=gen, dtype=torch.float64) * 0.3
-    mean = 0.5 * (mean + mean[mirror])
-    lengths = mean + torch.randn(50, 2, generator=gen, dtype=torch.float64) @ basis
-    pca = T.bone_pca(lengths, 3, mirror)
-    assert float(pca.explained[:2].sum()) > 0.999999
-    assert float(pca.explained[0]) < 0.999  # both components matter
-    b_mean, p_b = pca.basis(pca.mean_lengths)
-    torch.testing.assert_close(b_mean, torch.ones(20, dtype=torch.float64))
-    recon = (b_mean + pca.coeffs[:, :2] @ p_b[:2]) * pca.mean_lengths
-    torch.testing.assert_close(recon, lengths)
-    # Coefficients are in standard deviations.
-    torch.testing.assert_close(pca.coeffs[:, :2].std(0), torch.ones(2, dtype=torch.float64))
-
-
-def test_bone_pca_bad_input():
-    with pytest.raises(ValueError, match="N >= 2"):
-        T.bone_pca(torch.ones(1, 20), 2)
-    with pytest.raises(ValueError, match="at least 5 bodies"):
-        T.bone_pca(torch.rand(3, 20), 5)
-
-
-def test_blend_weights_eq_5_31():
-    gen = torch.Generator().manual_seed(0)
-    raw = torch.randn(30, 5, generator=gen)
-    mask = torch.rand(30, 5, generator=gen) > 0.4
-    mask[:, 0] = True
-    w = T.blend_weights(raw, mask, 1e-8)
-    assert (w >= 0).all() and (w[~mask] == 0).all()
-    torch.testing.assert_close(w.sum(1), torch.ones(30))
-    # f(x) = f(-x): the sign of W' does not matter.
-    torch.testing.assert_close(T.blend_weights(-raw, mask, 1e-8), w)
-
-
-def test_weight_support_adds_parent_and_children():
-    parents = [-1, 0, 1, 1]
-    w = torch.tensor([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-    s = T.weight_support(w, parents)
-    assert s.tolist() == [[True, True, True, True], [False, True, False, True]]
-
-
-def test_solve_correctives_matches_lstsq():
-    """The per-vertex normal equations equal a dense least-squares solve of Eq. 5.27."""
-    gen = torch.Generator().manual_seed(0)
-    n, v, k = 12, 3, 2
-    f64 = torch.float64
-    lin = torch.randn(n, v, 3, 3, generator=gen, dtype=f64) + 2 * torch.eye(3, dtype=f64)
-    off = torch.randn(n, v, 3, generator=gen, dtype=f64)
-    coeffs = torch.randn(n, k, generator=gen, dtype=f64)
-    tgt = torch.randn(n, v, 3, generator=gen, dtype=f64)
-    vbar, pbc = T.solve_correctives(tgt, coeffs, lin, off, ridge=0.0)
-    for i in range(v):  # unknowns [v_i, p_1i, p_2i] (9,)
-        rows = torch.cat([torch.cat([lin[m, i] * a for a in torch.cat([torch.ones(1, dtype=f64), coeffs[m]])], 1) for m in range(n)])
-        rhs = (tgt[:, i] - off[:, i]).reshape(-1)
-        x = torch.linalg.lstsq(rows, rhs[:, None]).solution[:, 0]
-        torch.testing.assert_close(vbar[i], x[:3])
-        torch.testing.assert_close(pbc[:, i], x[3:].reshape(k, 3))
 
 
 def test_config_files_load():

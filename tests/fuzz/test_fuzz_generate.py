@@ -340,7 +340,7 @@ def test_bad_scan_folder_is_found_before_any_work(tmp_path, capfd, fake_run, mod
 
 
 class FakeMaker:
-    """Stands in for synth.generate.SampleMaker: fake samples (tests/synth/fakes.py), 64 px."""
+    """Stands in for synth.sample.SampleMaker: fake samples (tests/synth/fakes.py), 64 px."""
 
     hook = None
 
@@ -358,6 +358,7 @@ class FakeMaker:
 @pytest.fixture
 def fake_run(monkeypatch):
     from synth import generate as gen
+    from synth import worker
 
     def prepare(cfg, out, model):
         (out / gen.SUBJECTS).mkdir(parents=True, exist_ok=True)
@@ -367,7 +368,7 @@ def fake_run(monkeypatch):
     monkeypatch.setattr(gen, "prepare_subjects", prepare)
     monkeypatch.setattr(gen, "choose_variant", lambda cfg: "scalar_rgb")
     monkeypatch.setattr(gen, "versions", lambda: {"fake": "1"})
-    monkeypatch.setattr(gen, "SampleMaker", FakeMaker)
+    monkeypatch.setattr(worker, "SampleMaker", FakeMaker)
     monkeypatch.setattr(gen, "PoseSource", lambda cfg: None)
     monkeypatch.setattr(FakeMaker, "hook", None)
     return gen

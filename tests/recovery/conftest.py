@@ -33,7 +33,7 @@ def fake_root(tmp_path_factory, model) -> Path:
 @pytest.fixture(scope="session")
 def cache_dir(tmp_path_factory, fake_root) -> Path:
     """The fake dataset's crop cache for ``CROP`` px at ``CONTEXT``."""
-    from recovery.data import build_cache
+    from recovery.datasets.cache import build_cache
 
     with one_thread():
         return build_cache(

@@ -62,3 +62,13 @@ def train_config(fake_root: Path, cache: Path, **changes: dict) -> dict:
 def write_config(path: Path, cfg: dict) -> Path:
     path.write_text(yaml.safe_dump(cfg))
     return path
+
+
+def sphere(subdivisions: int = 2, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """A closed, outward-wound icosphere with radially jittered vertices (no distance ties)."""
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    rng = np.random.default_rng(seed)
+    v = m.vertices * (1 + 0.05 * rng.random((len(m.vertices), 1)))
+    return v, np.asarray(m.faces)

@@ -55,7 +55,7 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
     logs: list[str] = []
     with one_thread():
         res = run_ablation(cfgs, fake_root, tmp_path / "runs", tmp_path / "docs", log=logs.append)
-    saved = json.loads((tmp_path / "docs" / "recovery_ablation.json").read_text())
+    saved = json.loads((tmp_path / "docs" / "figures" / "recovery_ablation.json").read_text())
     assert set(saved["configs"]) == set(CONFIGS)
     for c in saved["configs"].values():
         assert {"joint_mm", "vertex_mm", "pa_joint_mm"} <= set(c) and c["vertex_mm"] > 0
@@ -63,13 +63,13 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
     assert {"vertex_mm", "pca_vertex_mm", "prior_vertex_mm", "prior_pca_vertex_mm"} <= set(ae) and ae["test_meshes"] == 8
     assert ae["pca_by_components"]["4"][0] == pytest.approx(ae["pca_vertex_mm"])  # the full model's point of the curve
     for png in ("recovery_ablation_C_vs_A.png", "recovery_ablation_E_vs_B.png", "recovery_ablation_roughness.png"):
-        assert (tmp_path / "docs" / png).stat().st_size > 1000
+        assert (tmp_path / "docs" / "figures" / png).stat().st_size > 1000
     assert "does not hold" in (tmp_path / "docs" / "recovery_ablation.md").read_text() or "holds" in (tmp_path / "docs" / "recovery_ablation.md").read_text()
     # a second call trains and evaluates nothing again, and takes in a GPU run's summary and the notes
-    gpu = {"command": "python benchmarks/gpu_autoencoder.py", "config": "x.yaml", "batch_size": 64, "planned_steps": 10,
+    gpu = {"command": "python benchmarks/figures/gpu_autoencoder.py", "config": "x.yaml", "batch_size": 64, "planned_steps": 10,
            "device": "GPU", "steps_reached": 10, "train_seconds": 1.0, "meshes_per_second": 640.0,
            "val_vertex_mm": {"10": 9.5}, "val_split": "val", "status": "done"}
-    (tmp_path / "docs" / "recovery_ablation_gpu.json").write_text(json.dumps({"runs": [{**gpu, "latent": 8}]}))
+    (tmp_path / "docs" / "figures" / "recovery_ablation_gpu.json").write_text(json.dumps({"runs": [{**gpu, "latent": 8}]}))
     (tmp_path / "docs" / "recovery_ablation_notes.md").write_text("## Why\n\nmeasured notes")
     logs.clear()
     with one_thread():

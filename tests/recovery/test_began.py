@@ -1,4 +1,4 @@
-"""recovery.mesh_task: the BEGAN k_t update (Eq. 4.12) by hand, and inside a training step."""
+"""recovery.tasks.mesh_task: the BEGAN k_t update (Eq. 4.12) by hand, and inside a training step."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 from recovery_helpers import CROP
 
-from recovery.mesh_task import began_convergence, began_k_update
+from recovery.tasks.mesh_task import began_convergence, began_k_update
 
 
 def test_k_update_follows_eq_4_12_step_by_step():
@@ -25,10 +25,20 @@ def test_k_update_follows_eq_4_12_step_by_step():
 def test_a_began_training_step(cache_dir, model, tmp_path):
     """One step of the image-to-mesh network with the BEGAN discriminator: k moves by Eq. 4.12 with
     the step's logged L_AE values, and the discriminator's weights change."""
-    from recovery.config import BeganConfig, DataConfig, LossConfig, MeshConfig, ModelConfig, OptimConfig, RecoveryConfig, TrainConfig
-    from recovery.data import BatchAugment, CropCache
+    from recovery.config import (
+        BeganConfig,
+        DataConfig,
+        LossConfig,
+        MeshConfig,
+        ModelConfig,
+        OptimConfig,
+        RecoveryConfig,
+        TrainConfig,
+    )
+    from recovery.datasets.augment import BatchAugment
+    from recovery.datasets.cache import CropCache
     from recovery.mesh.operators import MeshOpsSettings, mesh_operators
-    from recovery.mesh_task import MeshTask
+    from recovery.tasks.mesh_task import MeshTask
 
     settings = MeshOpsSettings(regressor_samples=24, regressor_support=32)
     ops = mesh_operators(None, tmp_path / "ops", settings, log=lambda *a: None)

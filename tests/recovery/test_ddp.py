@@ -19,12 +19,13 @@ import torch
 from recovery_helpers import one_thread, train_config, write_config
 
 from recovery import distributed as D
-from recovery import losses as L
 from recovery import trainer
+from recovery.checkpoint import read_checkpoint
 from recovery.config import RecoveryConfig, TrainConfig, load_config
-from recovery.data import ResumableSampler, ShardedBatches
-from recovery.hmr_task import HMRTask
-from recovery.trainer import read_checkpoint, read_log
+from recovery.datasets.sampling import ResumableSampler, ShardedBatches
+from recovery.models import losses as L
+from recovery.tasks.hmr_task import HMRTask
+from recovery.trainer import read_log
 
 REPO = Path(__file__).resolve().parents[2]
 PORT = 29511  # inside the private namespace: always free
@@ -224,7 +225,7 @@ def test_two_processes_give_the_single_process_losses(ddp_runs):
 
     Seed 0 (``train.seed``) for the initialisation, the data order, the augmentation and the
     real-pose draws. Data order: the fake dataset's 9 people in the permutation
-    ``numpy.random.default_rng([0, epoch])`` per epoch (:class:`recovery.data.ResumableSampler`),
+    ``numpy.random.default_rng([0, epoch])`` per epoch (:class:`recovery.datasets.sampling.ResumableSampler`),
     cut into global batches of 16 consecutive keys (a batch runs on into the next epoch); rank r
     takes keys 8 r .. 8 r + 7 of each batch, so both runs see the same 16 crops at every step,
     each augmented from ``(0, epoch, item)``.
@@ -248,7 +249,7 @@ def test_rank_0_writes_one_run_folder(ddp_runs):
     """One log, one validation, ``last.pt`` and ``best.pt`` from rank 0; the checkpoint records the
     global position and every rank's RNG, and loads into the single-process network."""
     import blsm
-    from recovery.hmr_task import build_model
+    from recovery.tasks.hmr_task import build_model
 
     two = ddp_runs["two"]
     assert sorted(p.name for p in two.iterdir()) == RUN_FILES

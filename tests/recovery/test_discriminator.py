@@ -1,11 +1,11 @@
-"""recovery.models.discriminator and the LSGAN losses of recovery.losses."""
+"""recovery.models.discriminator and the LSGAN losses of recovery.models.losses."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from recovery import losses as L
+from recovery.models import losses as L
 from recovery.models.discriminator import PoseDiscriminator, normalise_angles
 
 

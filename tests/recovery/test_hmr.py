@@ -1,18 +1,20 @@
-"""recovery.models.hmr and recovery.geometry: the IEF regressor, decoding, Theta_0, the camera."""
+"""recovery.models.hmr and recovery.utils.geometry: the IEF regressor, decoding, Theta_0, the camera."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from recovery.geometry import (
+from recovery.models.heads import ParamLayout, mean_theta
+from recovery.models.hmr import HMRBLSM, body_outputs
+from recovery.utils.geometry import (
+    UPRIGHT_FACING_CAMERA,
     cam_to_translation,
     matrix_to_rot6d,
     project,
     rot6d_to_matrix,
     translation_to_cam,
 )
-from recovery.models.hmr import HMRBLSM, UPRIGHT_FACING_CAMERA, ParamLayout, body_outputs, mean_theta
 
 
 def _network(model, iterations: int, gen: torch.Generator) -> HMRBLSM:
@@ -47,7 +49,7 @@ def test_zero_ief_iterations_give_the_mean_parameters(model, gen):
 
 def test_zero_ief_iterations_from_the_config(model, gen):
     from recovery.config import ModelConfig, RecoveryConfig
-    from recovery.hmr_task import build_model
+    from recovery.tasks.hmr_task import build_model
 
     cfg = RecoveryConfig(
         model=ModelConfig(backbone="resnet18", pretrained=False, ief_iterations=0, hidden=16)

@@ -1,4 +1,4 @@
-"""recovery.hmr_task: HMR-BLSM's training step can fit a batch, and stops on a non-finite loss."""
+"""recovery.tasks.hmr_task: HMR-BLSM's training step can fit a batch, and stops on a non-finite loss."""
 
 from __future__ import annotations
 
@@ -6,7 +6,6 @@ import pytest
 import torch
 from recovery_helpers import CROP, one_thread
 
-from recovery import metrics as M
 from recovery.config import (
     DataConfig,
     DiscriminatorConfig,
@@ -17,11 +16,14 @@ from recovery.config import (
     TrainConfig,
     load_config,
 )
-from recovery.data import BatchAugment, CropCache
-from recovery.hmr_task import HMRTask, warmup_cosine
-from recovery.joints import indices
-from recovery.models.hmr import ParamLayout, predict_body
-from recovery.train import theta0
+from recovery.datasets.augment import BatchAugment
+from recovery.datasets.cache import CropCache
+from recovery.eval import metrics as M
+from recovery.eval.joints import indices
+from recovery.models.heads import ParamLayout
+from recovery.models.hmr import predict_body
+from recovery.tasks.hmr_task import HMRTask, theta0
+from recovery.utils.schedule import warmup_cosine
 
 # The smallest budget that fits the 8 crops to a few millimetres for several seeds (2.5-3.3 mm mean,
 # 7.4 mm worst crop over seeds 0-3; 40 steps leave 7-12 mm, 50 steps 4-5 mm).

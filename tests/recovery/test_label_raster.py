@@ -5,8 +5,8 @@ import pytest
 import torch
 import trimesh
 
-from recovery import raster
-from recovery.raster import rasterize, rasterize_labels, rasterize_labels_batch
+from recovery.utils import raster
+from recovery.utils.raster import rasterize, rasterize_labels, rasterize_labels_batch
 
 K = np.array([[30.0, 0.0, 12.0], [0.0, 30.0, 12.0], [0.0, 0.0, 1.0]])
 W = H = 24

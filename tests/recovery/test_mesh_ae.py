@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from test_spiral import sphere
+from recovery_helpers import sphere
 
 from recovery.mesh.operators import MeshOpsSettings, mesh_hierarchy, mesh_operators
 from recovery.mesh.sampling import Level

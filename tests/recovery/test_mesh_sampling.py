@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from test_spiral import sphere
+from recovery_helpers import sphere
 
 from recovery.mesh.sampling import build_levels, decimate, upsampling
-from recovery.models.spiral import Pool, Unpool
+from recovery.models.spiral_conv import Pool, Unpool
 
 
 @pytest.fixture(scope="module")

@@ -66,7 +66,7 @@ def test_autoencoder_run_logs_vertex_error(ae_run):
 
 
 def test_config_f_keeps_the_pretrained_decoder_and_discriminator(ae_run, f_run):
-    from recovery.trainer import read_checkpoint
+    from recovery.checkpoint import read_checkpoint
 
     ae = read_checkpoint(ae_run / "last.pt")["modules"]["ae"]
     ck = read_checkpoint(f_run / "last.pt")
@@ -84,7 +84,7 @@ def test_config_f_keeps_the_pretrained_decoder_and_discriminator(ae_run, f_run):
 
 
 def test_evaluate_and_predict_read_a_mesh_checkpoint(f_run, fake_root, tmp_path):
-    from recovery.evaluate import evaluate
+    from recovery.eval.evaluate import evaluate
     from recovery.predict import predict
 
     with one_thread():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from recovery.metrics import (
+from recovery.eval.metrics import (
     confusion_matrix,
     foreground_scores,
     mpjpe,

@@ -1,4 +1,4 @@
-"""recovery.data: the crop cache equals SynthDataset's crops, per-batch augmentation keeps 2D, 3D,
+"""recovery.datasets: the crop cache equals SynthDataset's crops, per-batch augmentation keeps 2D, 3D,
 camera and pose labels consistent (rotation, scale, shift, flip), and the data order resumes."""
 
 from __future__ import annotations
@@ -13,15 +13,10 @@ from recovery_helpers import CONTEXT, CROP
 
 from blsm.skeleton import mirror_name
 from recovery.config import AugmentSpec
-from recovery.data import (
-    BatchAugment,
-    CropCache,
-    ResumableSampler,
-    augment_config,
-    build_cache,
-    spread_indices,
-)
-from recovery.geometry import project
+from recovery.datasets.augment import BatchAugment
+from recovery.datasets.cache import CropCache, build_cache
+from recovery.datasets.sampling import ResumableSampler, spread_indices
+from recovery.utils.geometry import project
 from synth.data import CropParams, SynthDataset
 
 MIRROR = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
@@ -45,7 +40,7 @@ def raw(cache):
 
 def _augment(cache, model, spec=None, seed=0):
     return BatchAugment(
-        CROP, cache.context, augment_config(spec), seed, model.dof_mirror, cache.keypoint_names
+        CROP, cache.context, spec, seed, model.dof_mirror, cache.keypoint_names
     )
 
 
@@ -156,8 +151,8 @@ def test_flip_test_time_augmentation_undoes_the_augmentations_flip(cache, raw, m
     """recovery.models.hmr.unflip_output is the inverse of BatchAugment's flip on every regressed
     parameter: the labels of a flipped crop, read as a prediction and mirrored back, are the
     unflipped crop's (so the flip average of two such predictions is the plain one)."""
-    from recovery.geometry import translation_to_cam
     from recovery.models.hmr import HMROutput, flip_average, unflip_output
+    from recovery.utils.geometry import translation_to_cam
 
     aug = _augment(cache, model)
     n = len(cache)
@@ -225,7 +220,7 @@ def test_effects_touch_pixels_only_and_are_repeatable(cache, model):
     items = [cache[(1, i)] for i in range(len(cache))]
     plain = _augment(cache, model, spec, seed=3)(items)
     every = EffectsSpec(blur_prob=1.0, noise=0.05, jpeg_prob=1.0, lowres_prob=1.0, occlusion_prob=1.0)
-    aug = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names, effects=every)
+    aug = BatchAugment(CROP, cache.context, spec, 3, model.dof_mirror, cache.keypoint_names, effects=every)
     b = aug(items)
     for k in plain:
         if k != "image":
@@ -236,10 +231,10 @@ def test_effects_touch_pixels_only_and_are_repeatable(cache, model):
     assert torch.equal(again["image"], b["image"].flip(0))  # a function of (seed, epoch, item) only
     for one in (EffectsSpec(blur_prob=1.0), EffectsSpec(noise=0.05), EffectsSpec(jpeg_prob=1.0, jpeg_quality=10),
                 EffectsSpec(lowres_prob=1.0), EffectsSpec(occlusion_prob=1.0)):
-        img = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names,
+        img = BatchAugment(CROP, cache.context, spec, 3, model.dof_mirror, cache.keypoint_names,
                            effects=one)(items)["image"]
         assert (img - plain["image"]).abs().mean() > 1e-3, one
-    off = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names,
+    off = BatchAugment(CROP, cache.context, spec, 3, model.dof_mirror, cache.keypoint_names,
                        effects=EffectsSpec())(items)
     assert torch.equal(off["image"], plain["image"])  # all off: the crops of before
     with pytest.raises(ValueError, match="data.effects"):
@@ -252,7 +247,7 @@ def test_truncation_close_ups_keep_the_head_and_project_exactly(cache, model):
     items = [cache[(1, i)] for i in range(len(cache))]
     spec = AugmentSpec(rotation_prob=0.0, flip_prob=0.0, scale=0.0, translation=0.0)
     plain = _augment(cache, model, spec, seed=3)(items)
-    trunc = BatchAugment(CROP, cache.context, augment_config(spec), 3, model.dof_mirror, cache.keypoint_names,
+    trunc = BatchAugment(CROP, cache.context, spec, 3, model.dof_mirror, cache.keypoint_names,
                          effects=EffectsSpec(truncation_prob=1.0, truncation_scale=0.5))
     b = trunc(items)
     uv = project(b["keypoints_3d"] + b["transl_cam"][:, None], b["K_crop"])
@@ -266,3 +261,53 @@ def test_truncation_close_ups_keep_the_head_and_project_exactly(cache, model):
         top_plain, top_trunc = plain["keypoints_2d"][i, head, 1], b["keypoints_2d"][i, head, 1]
         assert float(top_trunc) == pytest.approx(float(top_plain) / f, rel=1e-3, abs=1e-3)
     assert b["keypoints_2d"][:, ankles, 2].sum() < plain["keypoints_2d"][:, ankles, 2].sum()  # legs leave
+
+
+def test_augment_spec_is_synth_augment_config_with_no_hue(tmp_path):
+    """One augmentation config: recovery's is synth's with hue 0 by default, also when a YAML file
+    sets some of its keys; synth's checks apply."""
+    import dataclasses
+
+    from recovery.config import load_config
+    from synth.data import AugmentConfig
+
+    assert isinstance(AugmentSpec(), AugmentConfig)
+    assert dataclasses.asdict(AugmentSpec()) == {**dataclasses.asdict(AugmentConfig()), "hue": 0.0}
+    path = tmp_path / "c.yaml"
+    path.write_text("data: {augment: {scale: 0.3}}\n")
+    aug = load_config(path).data.augment
+    assert aug == AugmentSpec(scale=0.3) and aug.hue == 0.0
+    path.write_text("data: {augment: {hue: 0.9}}\n")
+    with pytest.raises(ValueError, match=r"c\.yaml: data\.augment: augment ranges"):
+        load_config(path)
+
+
+def _kornia_batch_colour(img, params):
+    """The colour step as recovery computed it before issue 33: SPIN's gains, then kornia's four
+    adjustments on the whole batch (each when any item needs it)."""
+    from kornia import enhance
+
+    gains = torch.tensor([p.color for p in params], dtype=img.dtype)[:, :, None, None]
+    x = (img * gains).clamp(0.0, 1.0)
+    jit = torch.tensor([p.jitter for p in params], dtype=img.dtype)
+    if (jit[:, 0] != 0).any():
+        x = enhance.adjust_brightness(x, jit[:, 0])
+    if (jit[:, 1] != 1).any():
+        x = enhance.adjust_contrast(x, jit[:, 1])
+    if (jit[:, 2] != 1).any():
+        x = enhance.adjust_saturation(x, jit[:, 2])
+    if (jit[:, 3] != 0).any():
+        x = enhance.adjust_hue(x, jit[:, 3])
+    return x.clamp(0.0, 1.0)
+
+
+@pytest.mark.parametrize("hue", [0.0, 0.05])
+def test_colour_is_synth_colour_jitter_per_item_and_the_batched_one_bit_for_bit(hue):
+    from recovery.datasets.augment import colour
+    from synth.data import draw_params
+
+    spec = AugmentSpec(hue=hue)
+    img = torch.rand(6, 3, 16, 16, generator=torch.Generator().manual_seed(1))
+    params = [draw_params(spec, np.random.default_rng([4, i])) for i in range(6)]
+    assert torch.equal(colour(img, params), _kornia_batch_colour(img, params))
+    assert torch.equal(colour(img, [CropParams()] * 6), img)  # the identity: no augmentation

@@ -1,4 +1,4 @@
-"""recovery.evaluate: ``recovery evaluate`` writes every metric, baseline and split and a results
+"""recovery.eval.evaluate: ``recovery evaluate`` writes every metric, baseline and split and a results
 sheet; the fixed-skeleton baseline is the generalised Procrustes mean."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 import torch
 from recovery_helpers import one_thread
 
-from recovery import metrics as M
 from recovery.cli import main
-from recovery.evaluate import fixed_skeleton
+from recovery.eval import metrics as M
+from recovery.eval.evaluate import fixed_skeleton
 
 SEGMENTATION = {"fg_accuracy", "fg_f1", "parts_accuracy", "parts_macro_f1"}
 
@@ -82,7 +82,7 @@ def test_evaluate_writes_every_metric(evaluated, capsys):
 
 def test_pose_prior_outliers_counts_implausible_poses():
     from blsm.mocap.prior import load_prior
-    from recovery.evaluate import pose_prior_outliers
+    from recovery.eval.evaluate import pose_prior_outliers
 
     prior = load_prior(Path(__file__).parents[2] / "blsm" / "data" / "pose_prior_cmu.npz")
     real = prior.sample(400, torch.Generator().manual_seed(0))

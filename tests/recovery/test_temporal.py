@@ -1,4 +1,4 @@
-"""recovery.temporal: acceleration error, acceleration and jitter over runs of consecutive frames, and
+"""recovery.eval.temporal: acceleration error, acceleration and jitter over runs of consecutive frames, and
 the ``temporal`` section ``recovery evaluate`` writes for a sequence dataset."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 import torch
 from recovery_helpers import one_thread
 
-from recovery.temporal import (
+from recovery.eval.temporal import (
     accel_error,
     acceleration,
     consecutive_runs,
@@ -226,7 +226,7 @@ def sequence_eval(run_a, model, tmp_path_factory):
 def _label_rows(ds):
     """(sequence, track, frame, fps, (J, 3) pelvis-aligned float32 camera joints) per evaluated person,
     read straight from the samples' JSON (the dataset evaluates every person with a pixel)."""
-    from recovery.joints import EVAL_JOINTS
+    from recovery.eval.joints import EVAL_JOINTS
     from synth.data import DatasetIndex
 
     index = DatasetIndex(ds)
@@ -245,7 +245,7 @@ def _label_rows(ds):
 
 
 def test_evaluate_reports_temporal_metrics_of_a_sequence_dataset(sequence_eval):
-    from recovery.evaluate import format_report
+    from recovery.eval.evaluate import format_report
 
     ds, m = sequence_eval
     t = m["temporal"]
@@ -290,7 +290,7 @@ def test_evaluate_reports_temporal_metrics_of_a_sequence_dataset(sequence_eval):
 
 
 def test_evaluate_of_single_images_has_no_temporal_section(run_a, fake_root, tmp_path):
-    from recovery.evaluate import evaluate
+    from recovery.eval.evaluate import evaluate
 
     with one_thread():
         m = evaluate(run_a / "last.pt", fake_root, tmp_path / "eval", batch=8, log=lambda *a: None)

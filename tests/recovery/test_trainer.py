@@ -12,9 +12,10 @@ import torch
 from recovery_helpers import TRAIN_STEPS, one_thread, train_config, write_config
 
 from recovery import trainer
+from recovery.checkpoint import read_checkpoint
 from recovery.cli import main
-from recovery.hmr_task import HMRTask
-from recovery.trainer import read_checkpoint, read_log
+from recovery.tasks.hmr_task import HMRTask
+from recovery.trainer import read_log
 
 STOP_AFTER = 3
 

@@ -1,4 +1,4 @@
-"""The transfer check (recovery/transfer.py): the box rule, the mean-pose floor, the report's
+"""The transfer check (recovery/eval/transfer.py): the box rule, the mean-pose floor, the report's
 structure and the ratio, with a stand-in reference (a script that puts one fixed pose into every
 box it is given); the MediaPipe reference itself is exercised by ``make bench`` (docs/transfer.md)."""
 
@@ -13,7 +13,7 @@ import pytest
 from PIL import Image
 
 from recovery import cli
-from recovery.transfer import (
+from recovery.eval.transfer import (
     COCO_NAMES,
     JOINT_BOX_GROWTH,
     MEDIAPIPE_INDEX,
@@ -27,7 +27,7 @@ from recovery.transfer import (
     visible_joints,
 )
 
-# A stand-in for recovery/reference_pose.py: the same interface (JOB.json OUT.json), one fixed pose
+# A stand-in for recovery/eval/reference_pose.py: the same interface (JOB.json OUT.json), one fixed pose
 # (TEMPLATE, in box coordinates) placed into each box; nobody in a box narrower than 20 px; it
 # counts its calls in CALLS so that the test can see the cache at work.
 FAKE_REFERENCE = '''

@@ -27,7 +27,7 @@ from pathlib import Path
 def break_sample_5() -> None:
     """Ray worker setup hook: sample 5 raises a ValueError, as a bad input file would; each
     attempt is logged to $BREAK_LOG."""
-    from synth import generate as gen
+    from synth import sample as gen
 
     make = gen.SampleMaker.make
 
@@ -44,7 +44,7 @@ def break_sample_5() -> None:
 def slow_samples() -> None:
     """Ray worker setup hook: every sample takes 0.3 s longer; each sample's start is logged as the
     worker's pid to $START_LOG."""
-    from synth import generate as gen
+    from synth import sample as gen
 
     make = gen.SampleMaker.make
 

@@ -15,52 +15,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tiny_run import TINY, TINY_YAML
+from tiny_run import copy_subjects as _copy_subjects
+from tiny_run import shard_digests as _shard_digests
 
 from synth import format as fmt
-from synth.config import BackgroundConfig, GeneratorConfig, HairConfig, OutputConfig, PeopleConfig, RenderConfig, SubjectsConfig
-from synth.camera import CameraConfig
-from synth.generate import generate, subdivide
+from synth.config import BackgroundConfig, HairConfig, OutputConfig
+from synth.generate import generate
 from synth.shards import read_shard, write_shard
 from synth.validate import validate
 
 ROOT = Path(__file__).resolve().parents[2]
 HDRI = ROOT.parent / "shared" / "assets" / "hdri"
-
-TINY = GeneratorConfig(
-    seed=7,
-    num=6,
-    subjects=SubjectsConfig(count=2, texture_size=128),
-    people=PeopleConfig(min=1, max=2),
-    camera=CameraConfig(width=96, height=96, rare_rate=0.2, truncation_rate=0.3),
-    background=BackgroundConfig(env_width=128),
-    render=RenderConfig(spp=4),
-    output=OutputConfig(shard_size=3),
-)
-TINY_YAML = """seed: 7
-num: 6
-subjects: {count: 2, texture_size: 128}
-people: {min: 1, max: 2}
-camera: {width: 96, height: 96, rare_rate: 0.2, truncation_rate: 0.3}
-background: {env_width: 128}
-render: {spp: 4}
-output: {shard_size: 3}
-"""
-
-
-@pytest.fixture(scope="session")
-def tiny(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("tiny")
-    generate(TINY, out, progress=False)
-    return out
-
-
-def _copy_subjects(src: Path, dst: Path) -> None:
-    shutil.copytree(src / "subjects", dst / "subjects")
-
-
-def _shard_digests(path: Path) -> dict[str, str]:
-    return {k: v["sha256"] for k, v in json.loads((path / "manifest.json").read_text())["shards"].items()}
-
 
 def test_tiny_dataset_is_complete_and_validates(tiny):
     man = json.loads((tiny / "manifest.json").read_text())
@@ -224,74 +190,6 @@ def test_two_workers_make_the_same_bytes_as_one(tiny, tmp_path):
     assert man["complete"] and _shard_digests(out) == _shard_digests(tiny)
 
 
-def test_a_warm_worker_compiles_no_kernel_for_new_samples(tiny):
-    """Issue 34: after its first samples, a worker making new samples (new people count, pose,
-    camera, window, sky, seed) launches only kernels it has compiled already: Dr.Jit's kernel
-    history shows every JIT kernel as an in-memory cache hit. 128 px, so the people's window is
-    traced (its offset and size are the kernel's data, not literals) and shadows are on; one or
-    two people (one scene of two slots)."""
-    import drjit as dr
-
-    import synth.generate as gen
-    from blsm.mitsuba_util import resolve_variant
-    from synth.shards import sample_rng
-
-    cfg = dataclasses.replace(TINY, camera=dataclasses.replace(TINY.camera, width=128, height=128))
-    assert cfg.ground.shadows and cfg.hair.enabled
-    maker = gen.SampleMaker(cfg, tiny, resolve_variant(None), threads=0)
-    for i in (1000, 1001):  # warm-up: the first sample compiles every kernel
-        maker.make(i, sample_rng(cfg.seed, i))
-    was = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        dr.kernel_history()  # clears it
-        people, windows = set(), set()
-        for i in range(2000, 2008):
-            doc = fmt.decode_sample(maker.make(i, sample_rng(cfg.seed, i)))["json"]
-            people.add(len(doc["people"]))
-            windows.add(tuple(np.round(np.asarray(doc["people"][0]["box_full"]))))
-        history = dr.kernel_history()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, was)
-    assert people == {1, 2} and len(windows) == 8  # the samples do vary what used to compile
-    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
-    assert len(jit) >= 8 * 3  # path tracer, label pass and shadow catcher, per sample at least
-    # In memory: neither compiled now nor loaded from Dr.Jit's disk cache (which another process,
-    # or an earlier run over these samples, may have filled).
-    new = [(k["hash"], k["size"]) for k in jit if not k["cache_hit"] or k["cache_disk"]]
-    assert new == [], f"{len(new)} kernels compiled or loaded for new samples"
-
-
-def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny):
-    """With the backdrop composited (shadows, the default), the path tracer traces only the
-    people's window (SampleMaker.windowed): the same sample made both ways has the same labels, and
-    the image agrees up to Monte Carlo noise (another random stream for the people; the shadow
-    catcher skips the pixels a person covers fully, which the noise moves by a few)."""
-    import synth.generate as gen
-    from blsm.mitsuba_util import resolve_variant
-    from synth.shards import sample_rng
-
-    cfg = dataclasses.replace(TINY, render=RenderConfig(spp=36))
-    made = {}
-    for name, windowed in (("window", True), ("whole", False)):
-        maker = gen.SampleMaker(cfg, tiny, resolve_variant(None), threads=0)
-        maker.windowed = windowed
-        made[name] = [fmt.decode_sample(maker.make(1, sample_rng(cfg.seed, 1)))]
-    for a, b in zip(made["window"], made["whole"]):
-        for count in ("ground_pixels", "shadowed_pixels"):
-            n = [d["background"]["ground"].pop(count) for d in (a["json"], b["json"])]
-            assert abs(n[0] - n[1]) <= 0.05 * max(n), (count, n)
-        assert a["json"] == b["json"]
-        for key in ("mask", "parts", "depth"):
-            assert np.array_equal(a[key], b[key]), key
-        rgb_a, rgb_b = a["rgb"].astype(np.float64), b["rgb"].astype(np.float64)
-        person = a["mask"] > 0
-        assert person.sum() > 200 and (~person).sum() > 200
-        assert np.abs(rgb_a - rgb_b)[~person].mean() < 0.5  # 8-bit levels: the composited backdrop
-        assert abs(rgb_a[person].mean() - rgb_b[person].mean()) < 1.5
-        assert np.sqrt(np.mean((rgb_a - rgb_b) ** 2)) < 6.0
-
-
 @pytest.mark.parametrize("pipeline", ["raw", "blsm"])
 def test_raw_and_blsm_pipelines_validate(tiny, tmp_path, pipeline):
     out = tmp_path / pipeline
@@ -376,7 +274,7 @@ def test_backplates_meet_the_cameras_horizon(tiny, tmp_path):
 
 
 def test_skip_bad_lists_the_failing_sample_and_keeps_the_others(tiny, tmp_path, monkeypatch):
-    from synth import generate as gen
+    from synth import sample as gen
 
     real = gen.SampleMaker.make
 
@@ -452,18 +350,3 @@ def test_bad_input_is_one_line_naming_the_file_and_writes_nothing(tiny, tmp_path
     assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
     assert f"{p4}: subject made with other settings (seed differs)" in r.stderr, r.stderr
     assert not list(out4.glob("shard-*.tar"))
-
-
-def test_subdivision_keeps_each_child_inside_its_parent():
-    faces = np.array([[0, 1, 2], [0, 2, 3]])
-    parents, new = subdivide(faces)
-    assert new.shape == (8, 3) and parents.shape == (4 + 5, 2)
-    verts = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
-    sub = 0.5 * (verts[parents[:, 0]] + verts[parents[:, 1]])
-    for f in range(len(faces)):
-        tri = verts[faces[f]]
-        for c in new[4 * f : 4 * f + 4]:
-            centroid = sub[c].mean(0)
-            e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
-            b = np.linalg.lstsq(np.stack([e1, e2], 1), centroid - tri[0], rcond=None)[0]
-            assert b.min() >= 0 and b.sum() <= 1

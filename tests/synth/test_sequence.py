@@ -237,10 +237,10 @@ def test_two_workers_make_the_same_sequences_as_one(library, clips, tmp_path):
 
 
 def test_single_image_manifests_hold_no_sequence_section():
-    from synth.generate import _cfg_json
+    from synth.generate import cfg_json
 
-    assert "sequence" not in _cfg_json(GeneratorConfig())
-    assert _cfg_json(_cfg(Path("x")))["sequence"]["frames"] == 4
+    assert "sequence" not in cfg_json(GeneratorConfig())
+    assert cfg_json(_cfg(Path("x")))["sequence"]["frames"] == 4
 
 
 @pytest.mark.parametrize("kind", PATHS)
@@ -387,12 +387,12 @@ def test_a_warm_worker_compiles_no_kernel_for_new_sequences(library, clips):
     import drjit as dr
 
     from blsm.mitsuba_util import resolve_variant
-    from synth.generate import SampleMaker
-    from synth.sequence import sequence_rng
+    from synth.sample import SampleMaker
+    from synth.sequence import SequenceMaker, sequence_rng
 
     cfg = _cfg(library, sequence=dataclasses.replace(_cfg(library).sequence, cameras=CameraPaths()))
     maker = SampleMaker(cfg, clips, resolve_variant(None), threads=0)
-    seqs = maker.sequences()
+    seqs = SequenceMaker(maker)
     seqs.make(100, sequence_rng(cfg.seed, 100))  # warm-up
     was = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)

@@ -81,6 +81,19 @@ def test_interrupted_and_resumed_run_equals_an_uninterrupted_one(tmp_path):
         assert (tmp_path / "full" / name).read_bytes() == (tmp_path / "part" / name).read_bytes()
 
 
+def test_a_run_stops_where_its_shards_are_chosen(tmp_path):
+    """stop_after trims the pending shards (ShardWriter.pending), the one place a run stops early;
+    a run given a plan takes no second stop."""
+    w = writer(tmp_path)
+    todo, done, skipped = w.pending(False)
+    assert w.pending(False, stop_after=2) == (todo[:2], done, skipped) and len(todo) > 2
+    with pytest.raises(ValueError, match="not both"):
+        w.run(make_sample, stop_after=1, plan=(todo, done, skipped))
+    assert not (tmp_path / "ds" / MANIFEST).exists()
+    man = w.run(make_sample, plan=w.pending(False, stop_after=2))
+    assert sorted(man["shards"]) == [shard_name(0), shard_name(1)] and not man["complete"]
+
+
 def test_refuses_to_overwrite_or_to_resume_a_different_run(tmp_path):
     writer(tmp_path).run(make_sample, stop_after=1)
     with pytest.raises(ValueError, match="already holds a dataset"):

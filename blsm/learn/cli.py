@@ -1,0 +1,295 @@
+"""The commands that learn BLSM from scans: ``blsm scans | register | learn | train | evaluate |
+train-smpl``.
+
+One place for their arguments (:func:`add_parsers`, called by :func:`blsm.cli.build_parser`) and
+for what each runs. A bad input is one line ``blsm <command>: error: ...`` and exit status 2
+(``evaluate`` and ``train-smpl`` print it on stdout, ``learn`` prints the whole message).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from blsm.learn.evaluate import DEFAULT_KS
+
+# Help lines of ``blsm --help``.
+HELP = {
+    "scans": "make a scan population from Anny (the CAESAR / D-FAUST stand-in)",
+    "register": "register the template to scans (landmark fit, then free-form; Eqs. 5.13-5.25)",
+    "learn": "learn bone basis, correctives, shape and weights from registrations (Eqs. 5.26-5.31)",
+    "train": "the whole run: population, registration, learning, evaluation (one config)",
+    "evaluate": "held-out errors of BLSM-linear and SMPL-reimpl against the number of coefficients",
+    "train-smpl": "train the SMPL-reimpl baseline on registrations (Sec. 5.5.1)",
+}
+
+
+def _command(name: str, run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``run`` with a ValueError turned into ``blsm NAME: error: <first line>`` on stderr, exit 2."""
+
+    def command(args: argparse.Namespace) -> int:
+        try:
+            return run(args)
+        except ValueError as exc:
+            print(f"blsm {name}: error: {str(exc).splitlines()[0]}", file=sys.stderr)
+            return 2
+
+    return command
+
+
+def add_parsers(sub: Any) -> None:
+    """Add the learning commands to ``blsm``'s sub-commands, in the order ``blsm --help`` lists them."""
+    scans = sub.add_parser("scans", help=HELP["scans"], description="Synthetic scan populations from Anny.")
+    scans_sub = scans.add_subparsers(dest="cmd", required=True)
+    make = scans_sub.add_parser("make", help="write a scan population folder")
+    make.add_argument("--out", type=Path, required=True)
+    make.add_argument("--subjects", type=int, required=True)
+    make.add_argument("--posed-subjects", type=int, default=0)
+    make.add_argument("--poses", type=int, default=0, help="posed scans per posed subject")
+    make.add_argument("--seed", type=int, default=0)
+    make.add_argument("--test-fraction", type=float, default=0.1)
+    make.add_argument("--motions", type=Path, default=None,
+                      help="motion library folder (default: the pose prior)")
+    make.add_argument("--overwrite", action="store_true")
+    make.set_defaults(func=_command("scans", cmd_scans_make))
+
+    reg = sub.add_parser(
+        "register", help=HELP["register"],
+        description="Register the BLSM template to scans (thesis Sec. 5.4.1): landmark fit, then "
+                    "free-form refinement; writes one blsm-registration .npz per scan.",
+    )  # fmt: skip
+    reg.add_argument("scans", nargs="+", type=Path, help="scan files (blsm-scan .npz, or OBJ/PLY/GLB)")
+    reg.add_argument("--out", type=Path, required=True, help="output folder")
+    reg.add_argument("--landmarks", type=Path, help="the scan's located landmarks, JSON {name: [x, y, z]} "
+                     "(default: <scan stem>.landmarks.json beside a mesh; inside a .npz scan)")
+    reg.add_argument("--landmark-definitions", type=Path, help="template landmark definitions YAML "
+                     "(default: blsm/data/landmarks.yaml via blsm.learn.scans)")
+    reg.add_argument("--config", type=Path, help="RegisterConfig YAML (default: configs/blsm/register.yaml "
+                     "when present, else the thesis' values)")
+    reg.add_argument("--model", type=Path, help="BLSM model file (default: the packaged one)")
+    reg.add_argument("--batch", type=int, default=4, help="scans registered together (default 4)")
+    reg.add_argument("--overwrite", action="store_true", help="replace existing registration files")
+    reg.set_defaults(func=_command("register", cmd_register))
+
+    learn = sub.add_parser(
+        "learn", help=HELP["learn"],
+        description="Learning the BLSM parameters from registrations (thesis Sec. 5.4.2-5.4.4, "
+                    "Eqs. 5.26-5.31).",
+    )  # fmt: skip
+    learn.add_argument("registrations", nargs="+", type=Path, help="registration files or folders")
+    learn.add_argument("--config", type=Path, default=None, help="YAML run config (its train: section)")
+    learn.add_argument("--model", type=Path, default=None, help="initial model (default: the packaged one)")
+    learn.add_argument("--out", type=Path, required=True, help="learned model file (.npz)")
+    learn.add_argument("--report", type=Path, default=None, help="JSON report (default: <out>.report.json)")
+    learn.set_defaults(func=_command("learn", cmd_learn))
+
+    train = sub.add_parser(
+        "train", help=HELP["train"],
+        description="``blsm train CONFIG --out MODEL``: scans to a learned BLSM in one command "
+                    "(thesis Sec. 5.4).",
+    )  # fmt: skip
+    train.add_argument("config", type=Path, help="run config YAML (configs/blsm/train_default.yaml)")
+    train.add_argument("--out", type=Path, required=True, help="the learned model file (.npz)")
+    train.add_argument("--model", default=None,
+                       help="initial model (default: the packaged rig, blsm/data/blsm_anny_rig.npz)")
+    train.add_argument("--overwrite", action="store_true", help="replace an existing model file")
+    train.set_defaults(func=_command("train", cmd_train))
+
+    _add_evaluate(sub)
+
+    smpl = sub.add_parser("train-smpl", help=HELP["train-smpl"],
+                          description="Train the SMPL-reimpl baseline (Sec. 5.5.1).")
+    smpl.add_argument("--model", default=None,
+                      help="BLSM model .npz sharing topology/skeleton (default: packaged)")
+    smpl.add_argument("--registrations", required=True, help="folder of blsm-registration .npz files")
+    smpl.add_argument("--num-coeffs", type=int, default=32, help="PCA shape components kept")
+    smpl.add_argument("--iterations", default="100,100,100,300", help="Adam steps of the pose-fit stages")
+    smpl.add_argument("--lm-iterations", type=int, default=25)
+    smpl.add_argument("--out", required=True, help="output .npz")
+    smpl.set_defaults(func=_command("train-smpl", cmd_train_smpl))
+
+
+def _add_evaluate(sub: Any) -> None:
+    ev = sub.add_parser("evaluate", help=HELP["evaluate"],
+                        description="Held-out evaluation of BLSM-linear against SMPL-reimpl "
+                                    "(thesis Sec. 5.5.2).")
+    ev.add_argument("--model", default=None, help="BLSM model .npz (default: the packaged one)")
+    ev.add_argument("--baseline", default=None, help="SMPL-reimpl .npz (blsm.learn.smpl_reimpl)")
+    ev.add_argument("--registrations", required=True, help="folder of blsm-registration .npz files")
+    ev.add_argument("--scans", default=None, help="population / scan folder for ground truth")
+    ev.add_argument("--split", default="test", choices=("train", "test", "all"))
+    ev.add_argument("--out", default="docs/blsm_evaluation.md", help="markdown file to write")
+    ev.add_argument("--ks", default=",".join(map(str, DEFAULT_KS)), help="comma-separated k values")
+    ev.add_argument("--iterations", default="100,100,100,300", help="Adam steps of the four stages")
+    ev.add_argument("--lm-iterations", type=int, default=25, help="Levenberg-Marquardt polish steps")
+    ev.add_argument("--batch", type=int, default=16)
+    ev.add_argument("--max-registrations", type=int, default=0, help="0 = all")
+    ev.add_argument("--spread", action="store_true",
+                    help="with --max-registrations: take them round-robin over the subjects, not the first N")
+    ev.add_argument("--no-pose", action="store_true", help="skip pose generalisation")
+    ev.add_argument("--targets", default="registrations", choices=("registrations", "ground-truth"),
+                    help="fit the registrations, or the true bodies they register (needs gt_points)")
+    ev.add_argument("--also", action="append", default=[], metavar="NAME=MODEL.npz",
+                    help="another BLSM model to fit alongside (repeatable)")
+    ev.set_defaults(func=_command("evaluate", cmd_evaluate))
+
+
+# ------------------------------------------------------------------------------------------------
+# The commands
+
+
+def cmd_scans_make(args: argparse.Namespace) -> int:
+    """``blsm scans make``: a population folder of Anny stand-in scans."""
+    from blsm.learn.population import make_population
+
+    index = make_population(
+        args.out, args.subjects, args.posed_subjects, args.poses, args.seed, args.test_fraction,
+        motions=args.motions, overwrite=args.overwrite,
+    )  # fmt: skip
+    n_scans = sum(len(s["scans"]) for s in index["subjects"])
+    print(f"wrote {n_scans} scans of {len(index['subjects'])} subjects to {args.out} in {index['seconds']} s")
+    return 0
+
+
+def cmd_register(args: argparse.Namespace) -> int:
+    """``blsm register SCAN [SCAN ...] --out DIR``: one ``blsm-registration`` file per scan.
+
+    A scan is a ``blsm-scan`` ``.npz`` or an OBJ / PLY / GLB mesh whose located landmarks are in
+    ``<stem>.landmarks.json`` beside it, or in ``--landmarks FILE`` (one scan only).
+    """
+    import blsm
+    from blsm.learn.landmark_fit import default_selection, read_landmark_definitions
+    from blsm.learn.register import register, scan_data
+    from blsm.learn.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
+    from blsm.learn.registrations import save_registration
+    from blsm.learn.scans import load_scan
+
+    torch.set_num_threads(1)
+    model = blsm.load(args.model)
+    if args.config is not None:
+        cfg = load_config(args.config)
+    else:
+        cfg = load_config(DEFAULT_CONFIG) if DEFAULT_CONFIG.is_file() else RegisterConfig()
+    selection = (
+        read_landmark_definitions(args.landmark_definitions, model)
+        if args.landmark_definitions else default_selection(model)
+    )  # fmt: skip
+    if args.landmarks is not None and len(args.scans) != 1:
+        raise ValueError(f"{args.landmarks}: --landmarks names the landmarks of one scan, "
+                         f"got {len(args.scans)} scans")
+    if args.batch < 1:
+        raise ValueError(f"--batch must be >= 1, got {args.batch}")
+    jobs = []
+    for p in args.scans:
+        target = args.out / f"{p.stem}.npz"
+        if target.exists() and not args.overwrite:
+            raise ValueError(f"{target}: exists (use --overwrite to replace it)")
+        scan = load_scan(p, landmarks=args.landmarks, require_landmarks=True)
+        scan.meta = {**(getattr(scan, "meta", None) or {})}
+        scan.meta.setdefault("id", p.stem)
+        scan_data(scan, selection, str(p))  # fail fast, naming the file
+        jobs.append((scan, target))
+    for i in range(0, len(jobs), args.batch):
+        chunk = jobs[i : i + args.batch]
+        regs = register(model, [s for s, _ in chunk], cfg, selection=selection)
+        for reg, (_, target) in zip(regs, chunk, strict=True):
+            save_registration(reg, target)
+            print(f"wrote {target}", file=sys.stderr)
+    return 0
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    """``blsm learn REGISTRATION ... --out MODEL``: the model and its JSON report."""
+    from blsm import io
+    from blsm.learn.registrations import load_registrations
+    from blsm.learn.train import TrainConfig, learn_model, load_train_config
+    from blsm.model import load
+
+    try:
+        cfg = load_train_config(args.config) if args.config is not None else TrainConfig()
+        regs = load_registrations(args.registrations)
+        data, report = learn_model(load(args.model), regs, cfg)
+    except ValueError as exc:
+        print(f"blsm learn: error: {exc}", file=sys.stderr)
+        return 2
+    io.save_model(data, args.out)
+    report_path = args.report or args.out.with_suffix(".report.json")
+    with io.atomic_write(report_path, "w") as fh:
+        json.dump(report, fh, indent=1)
+    print(f"[train] wrote {args.out} and {report_path}", file=sys.stderr, flush=True)
+    return 0
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    """``blsm train CONFIG --out MODEL``: the whole pipeline (:mod:`blsm.learn.pipeline`)."""
+    from blsm.learn.pipeline import load_config, run
+
+    if args.out.exists() and not args.overwrite:
+        raise ValueError(f"{args.out}: exists; pass --overwrite to replace it")
+    run(load_config(args.config), args.out, args.model, str(args.config))
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """``blsm evaluate``: BLSM-linear vs SMPL-reimpl on held-out registrations."""
+    import blsm
+    from blsm.learn.evaluate import EvalConfig, evaluate, write_report
+    from blsm.learn.fit import BLSMFittable, FitConfig, Fittable
+    from blsm.learn.registrations import load_registration_set, spread_over_subjects
+    from blsm.learn.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
+
+    try:
+        ks = tuple(int(k) for k in args.ks.split(","))
+        iters = tuple(int(i) for i in args.iterations.split(","))
+        fitcfg = FitConfig(iterations=iters, lm_iterations=args.lm_iterations)  # type: ignore[arg-type]
+        model = blsm.load(args.model)
+        regs = load_registration_set(args.registrations, model.num_vertices, args.scans)
+        if args.split != "all":
+            regs = regs.split(args.split)
+        if args.max_registrations > 0:
+            n = min(args.max_registrations, regs.vertices.shape[0])
+            keep = spread_over_subjects(list(regs.subjects), n) if args.spread else list(range(n))
+            regs = regs.select(keep)
+        models: dict[str, Fittable] = {"BLSM-linear": BLSMFittable(model)}
+        if args.baseline:
+            models["SMPL-reimpl"] = SMPLReimplFittable(load_smpl_reimpl(args.baseline, model))
+        for spec in args.also:
+            name, sep, path = spec.partition("=")
+            if not sep or not name or not path:
+                raise ValueError(f"--also {spec}: expected NAME=MODEL.npz")
+            models[name] = BLSMFittable(blsm.load(path))
+        cfg = EvalConfig(ks=ks, fit=fitcfg, batch=args.batch, pose_generalisation=not args.no_pose)
+        for p in write_report(evaluate(models, regs, cfg, args.targets), args.out):
+            print(p)
+    except ValueError as exc:
+        print(f"blsm evaluate: error: {exc}")
+        return 2
+    return 0
+
+
+def cmd_train_smpl(args: argparse.Namespace) -> int:
+    """``blsm train-smpl``: SMPL-reimpl trained on the training split of a folder of registrations."""
+    import blsm
+    from blsm.learn.fit import FitConfig
+    from blsm.learn.registrations import load_registration_set
+    from blsm.learn.smpl_reimpl import SMPLTrainConfig, train_smpl_reimpl
+
+    try:
+        model = blsm.load(args.model)
+        regs = load_registration_set(args.registrations, model.num_vertices).split("train")
+        iters = tuple(int(i) for i in args.iterations.split(","))
+        fit = FitConfig(iterations=iters, lm_iterations=args.lm_iterations)  # type: ignore[arg-type]
+        cfg = SMPLTrainConfig(fit=fit)
+        smpl = train_smpl_reimpl(model, regs.vertices, args.num_coeffs, regs.subjects, cfg)
+        print(smpl.save(args.out))
+        print(json.dumps(smpl.meta))
+    except ValueError as exc:
+        print(f"blsm train-smpl: error: {exc}")
+        return 2
+    return 0

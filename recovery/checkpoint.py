@@ -1,0 +1,69 @@
+"""Checkpoint files: what a run's ``last.pt`` / ``best.pt``, an exported network and the packaged
+``default`` hold, and how they are written and read.
+
+A checkpoint is a dict of tensors, numbers, strings and containers only (``format``, ``version``,
+``task``, ``config`` as plain data, the modules' state dicts, ...), written by ``torch.save`` and
+read back with ``weights_only=True``. It holds no pickled class, so no module path of ``recovery``
+is stored in it: moving a module (issue 33 moved most of them) never stops an older checkpoint from
+loading, and no module-path mapping is needed (``tests/recovery/test_checkpoint.py`` loads the
+packaged checkpoint, written before the move, and checks that a new one names no ``recovery``
+global).
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from pathlib import Path
+from typing import Any
+
+import torch
+
+CHECKPOINT_FORMAT = "recovery-checkpoint"
+CHECKPOINT_VERSION = 1
+
+
+def save_atomic(obj: Any, path: Path) -> None:
+    """``torch.save`` into a hidden temporary file beside ``path``, then rename (never a partial file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        torch.save(obj, tmp)
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+DEFAULT_CHECKPOINT = Path(__file__).parent / "weights" / "hmr_blsm_default.pt"
+"""The packaged HMR-BLSM (``recovery export``; how it was trained: docs/recovery.md)."""
+
+
+def resolve(checkpoint: str | Path) -> Path:
+    """A checkpoint's path: ``default`` is the packaged one."""
+    return DEFAULT_CHECKPOINT if str(checkpoint) == "default" else Path(checkpoint)
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load a checkpoint file onto the CPU; a missing, corrupt or foreign file is a one-line ValueError."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such checkpoint")
+    try:
+        # weights_only: tensors, numbers, strings and containers only; a file that needs arbitrary
+        # unpickling (code) is refused, never run
+        ck = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any failure to read means a corrupt or refused file
+        lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+        code = next((ln for ln in lines if "Unsupported global" in ln or "GLOBAL" in ln), None)
+        if isinstance(exc, pickle.UnpicklingError) and code is not None:
+            raise ValueError(f"{path}: refused: loading it would run code or unknown types ({code[:120]})") from None
+        # random bytes also fail the weights-only unpickler ("Unsupported operand"): that is corruption
+        what = next((ln for ln in lines if "Unsupported operand" in ln), lines[0] if lines else "")
+        raise ValueError(f"{path}: corrupt checkpoint ({type(exc).__name__}: {what[:120]})") from None
+    if not isinstance(ck, dict) or ck.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path}: not a {CHECKPOINT_FORMAT!r} file")
+    if int(ck.get("version", -1)) != CHECKPOINT_VERSION:
+        raise ValueError(f"{path}: checkpoint version {ck.get('version')} (this code reads {CHECKPOINT_VERSION})")
+    return ck

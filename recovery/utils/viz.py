@@ -1,0 +1,91 @@
+"""Overlays of predicted meshes without Mitsuba (it is not on every training machine): the z-buffer of
+:mod:`recovery.utils.raster`, flat Lambertian shading per face, the thesis' part colours.
+
+Images are (H, W, 3) uint8; vertices are camera-frame metres (OpenCV: x right, y down, z forward);
+``K`` maps them to pixels with pixel centres at integer + 0.5.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from recovery.utils.raster import rasterize
+from synth.format import PART_PALETTE
+
+
+def face_parts(faces: np.ndarray, vertex_parts: np.ndarray) -> np.ndarray:
+    """(F,) part label 1 + k of each face: the part most of its three vertices belong to (its first
+    vertex's when all differ); 0 is background."""
+    p = vertex_parts[faces]  # (F, 3)
+    major = np.where(p[:, 1] == p[:, 2], p[:, 1], p[:, 0])
+    return (major + 1).astype(np.int64)
+
+
+def shade(vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, width: int, height: int,
+          color: tuple[float, float, float] | np.ndarray = (0.75, 0.75, 0.8)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flat-shaded render (headlight): (H, W, 3) float in [0, 1], the (H, W) coverage mask and the
+    (H, W) depth (inf where uncovered).
+
+    ``color`` is one RGB for the whole mesh or (F, 3) per face.
+    """
+    face_index, depth = rasterize(vertices, faces, K, width, height)
+    v = np.asarray(vertices, np.float64)
+    tri = v[faces]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    view = -tri.mean(1)
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), 1e-12)
+    n = np.where((n * view).sum(1, keepdims=True) < 0, -n, n)  # either winding faces the viewer
+    lam = 0.25 + 0.75 * np.clip((n * view).sum(1), 0, 1)  # a headlight: faces towards the viewer are brightest
+    col = np.broadcast_to(np.asarray(color, np.float64), (len(faces), 3))
+    face_rgb = col * lam[:, None]
+    mask = face_index >= 0
+    out = np.zeros((height, width, 3))
+    out[mask] = face_rgb[face_index[mask]]
+    return out, mask, depth
+
+
+def overlay(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, alpha: float = 0.7,
+            color: tuple[float, float, float] | np.ndarray = (0.75, 0.75, 0.8)) -> np.ndarray:
+    """The shaded mesh over ``image`` (H, W, 3) uint8 with opacity ``alpha``."""
+    h, w = image.shape[:2]
+    rgb, mask, _ = shade(vertices, faces, K, w, h, color)
+    out = image.astype(np.float64) / 255.0
+    out[mask] = (1 - alpha) * out[mask] + alpha * rgb[mask]
+    return (out * 255 + 0.5).clip(0, 255).astype(np.uint8)
+
+
+def parts_overlay(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, K: np.ndarray,
+                  face_labels: np.ndarray, alpha: float = 0.6) -> np.ndarray:
+    """The mesh's parts (:data:`synth.format.PART_PALETTE`) over ``image``, shaded."""
+    return overlay(image, vertices, faces, K, alpha, PART_PALETTE[face_labels].astype(np.float64) / 255.0)
+
+
+def label_image(labels: np.ndarray) -> np.ndarray:
+    """(H, W) part labels (0 background) -> (H, W, 3) uint8 in the part palette."""
+    return PART_PALETTE[np.clip(labels, 0, len(PART_PALETTE) - 1)]
+
+
+def side_view(meshes: list[tuple[np.ndarray, tuple[float, float, float]]], faces: np.ndarray, size: int,
+              yaw_deg: float = 90.0) -> np.ndarray:
+    """Meshes (camera frame, each with a colour) seen from the side: each centred on its own centroid
+    (so a prediction and its label overlap whatever their depth error), rotated by ``yaw_deg`` about
+    the camera's vertical axis, framed to fit. Returns (size, size, 3) uint8."""
+    a = np.radians(yaw_deg)
+    r = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    moved = [((m - m.mean(0)) @ r.T, col) for m, col in meshes]
+    pts = np.concatenate([m for m, _ in moved])
+    extent = max(np.ptp(pts[:, 0]), np.ptp(pts[:, 1]), 1e-3)
+    dist = 3.0
+    f = 0.8 * size * dist / extent
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1.0]])
+    mid = (pts.max(0) + pts.min(0)) / 2
+    out = np.full((size, size, 3), 1.0)
+    depth = np.full((size, size), np.inf)
+    for m, col in moved:
+        v = m - np.array([mid[0], mid[1], 0]) + np.array([0, 0, dist])
+        rgb, mask, d = shade(v, faces, K, size, size, col)
+        nearer = mask & (d < depth)
+        out[nearer] = rgb[nearer]
+        depth[nearer] = d[nearer]
+    return (out * 255 + 0.5).clip(0, 255).astype(np.uint8)

@@ -1,0 +1,613 @@
+"""Making one sample: people drawn and posed, placed, filmed, rendered, labelled and encoded.
+
+A worker's :class:`SampleMaker` makes any sample from ``(seed, index)`` alone, in this order:
+
+1. **People.** Each draws a subject and a pose (:class:`PoseSource`: the pose prior or the motion
+   library) and is posed (:func:`pose_person`, which ``synth validate`` uses to rebuild the same
+   meshes) into a :class:`Person`.
+2. **Placement** (:func:`place_people`): footprint discs ``people.gap`` apart, feet on the ground.
+3. **Camera and background** (:func:`synth.camera.sample_camera`, :mod:`synth.backgrounds`).
+4. **Render and labels** (:meth:`SampleMaker.render_frame`): the people's scene
+   (:class:`synth.render.PeopleRenderer`, one per mesh topology, updated in place), the backdrop
+   composited behind them with their shadows and the lens's blur, and the labels
+   (:func:`synth.labels.person_labels`).
+5. **Encoding** (:meth:`SampleMaker.encode`): the sample's fields (:mod:`synth.format`).
+
+Sequences (:class:`synth.sequence.SequenceMaker`, built on a worker's sample maker) reuse steps 1, 4
+and 5 per frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from blsm.color import linear_to_srgb, srgb_to_linear
+from synth import backgrounds as bg
+from synth import format as fmt
+from synth import labels as lab
+from synth.camera import outline_index, sample_camera
+from synth.config import GeneratorConfig
+from synth.render import PeopleRenderer, RenderMesh, people_window
+from synth.subjects import Subject, load_subject, pose_subject
+
+if TYPE_CHECKING:
+    from synth.hair import HairMesh, HairSpec
+
+SUBJECTS = "subjects"
+"""The dataset's folder of subjects (``DIR/subjects/*.npz`` and ``index.json``)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# People
+
+
+def subdivide(faces: np.ndarray, uv_faces: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint subdivision: face ``f`` becomes faces ``4f .. 4f + 3``.
+
+    Returns:
+        (S, 2) the two parent vertices of every new vertex (a vertex of the input is its own two
+        parents), and (4F, 3) the new faces.
+    """
+    v = int(faces.max()) + 1
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 3, 2), axis=2).reshape(-1, 2)
+    uniq, inv = np.unique(edges, axis=0, return_inverse=True)
+    mid = v + inv.reshape(-1, 3)  # (F, 3): midpoints of edges ab, bc, ca
+    a, b, c = faces.T
+    ab, bc, ca = mid.T
+    new = np.stack([np.stack([a, ab, ca], 1), np.stack([ab, b, bc], 1), np.stack([ca, bc, c], 1), np.stack([ab, bc, ca], 1)], 1)
+    parents = np.concatenate([np.stack([np.arange(v), np.arange(v)], 1), uniq])
+    return parents, new.reshape(-1, 3)
+
+
+@dataclass(frozen=True, eq=False)
+class Rig:
+    """A subject as a worker renders it, made once per worker (:meth:`SampleMaker.rig`).
+
+    Attributes:
+        mesh: the render mesh (split at UV seams).
+        faces: (F, 3) the faces of the posed vertices (after ``parents``' subdivision).
+        texture: (H, W, 3) float32 linear albedo.
+        face_bones: (F,) each face's bone (:func:`synth.labels.face_bones`).
+        parents: (S, 2) the parent vertices of the subdivided mesh (:func:`subdivide`; the
+            ``blsm`` pipeline with ``subdivide``), else None.
+        hair_spec: the subject's hair (:mod:`synth.hair`), or None without hair.
+        hair: that hair grown on the subject's rest body, or None.
+    """
+
+    mesh: RenderMesh
+    faces: np.ndarray
+    texture: np.ndarray
+    face_bones: np.ndarray
+    parents: np.ndarray | None
+    hair_spec: HairSpec | None = None
+    hair: HairMesh | None = None
+
+
+@dataclass(eq=False)
+class Person:
+    """One posed person (metres; Y up, the ground at ``y = 0`` once placed).
+
+    Attributes:
+        subject: the subject's id.
+        vertices: (V, 3) float32 posed vertices of the rendered mesh (subdivided as it is).
+        faces: (F, 3) their faces.
+        vertex_bones: (V,) each vertex's dominant bone.
+        keypoints: (K, 3) and ``joints`` (J, 3): the registration's in this pose.
+        angles: (47,) joint angles, radians; ``bone_scales`` (J,); ``rest_joints`` (J, 3) the bind
+            pose's joints; ``transforms`` (J, 3, 4) the skinning transforms.
+        pose: (47,) the unconstrained values x; None in the ``raw`` pipeline (the scan's own pose,
+            ``angles``).
+        global_orient, transl: (3,) the root's rotation vector and translation; ``bone`` and
+            ``shape`` the subject's coefficients.
+        hair: (H, 3) float32 posed hair vertices (:mod:`synth.hair`), or None.
+        motion: where the pose came from (the label's ``motion``).
+        si: the subject's index among the worker's subjects (-1 when rebuilt by ``validate``).
+        rig: the subject's :class:`Rig` (None when rebuilt by ``validate``).
+        outline: (N, 3) float32 hull vertices of body and hair, placed (None before placement).
+    """
+
+    subject: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_bones: np.ndarray
+    keypoints: np.ndarray
+    joints: np.ndarray
+    angles: np.ndarray
+    bone_scales: np.ndarray
+    rest_joints: np.ndarray
+    transforms: np.ndarray
+    pose: np.ndarray | None
+    global_orient: np.ndarray
+    transl: np.ndarray
+    bone: np.ndarray
+    shape: np.ndarray
+    hair: np.ndarray | None = None
+    motion: dict[str, Any] = field(default_factory=dict)
+    si: int = -1
+    rig: Rig | None = None
+    outline: np.ndarray | None = None
+
+    def move(self, d: np.ndarray) -> None:
+        """Translate the posed person (vertices, keypoints, joints, hair, root) by ``d`` (3,) metres;
+        the ``outline`` is the caller's."""
+        self.vertices = (self.vertices + d).astype(np.float32)
+        self.keypoints = (self.keypoints + d).astype(np.float32)
+        self.joints = (self.joints + d).astype(np.float32)
+        if self.hair is not None:
+            self.hair = (self.hair + d).astype(np.float32)
+        self.transl = (self.transl + d).astype(np.float32)
+
+    def shell(self) -> np.ndarray:
+        """The posed vertices with the hair's: footprints, framing and boxes use their hull
+        vertices, which hold the extremes (:func:`synth.camera.outline_index`)."""
+        return self.vertices if self.hair is None else np.concatenate([self.vertices, self.hair])
+
+
+def pose_person(
+    subject: Subject,
+    model: Any,
+    pipeline: str,
+    x: np.ndarray,
+    orient: np.ndarray,
+    transl: np.ndarray,
+    subdivision: tuple[np.ndarray, np.ndarray] | None = None,
+    hair: HairMesh | None = None,
+) -> Person:
+    """``subject`` posed (:func:`synth.subjects.pose_subject`), subdivided as its render mesh is,
+    with its hair posed: what the generator renders and ``synth validate`` rebuilds.
+
+    Args:
+        subject: the subject.
+        model: the BLSM model.
+        pipeline: ``rigged``, ``raw`` or ``blsm`` (:data:`synth.subjects.PIPELINES`).
+        x: (47,) unconstrained pose values; ``orient`` (3,) the root's rotation vector, ``transl``
+            (3,) its translation, metres (all three ignored by ``raw``).
+        subdivision: :func:`subdivide`'s ``(parents, faces)`` of the render mesh, or None.
+        hair: the subject's hair in the rest frame, or None.
+    """
+    p = pose_subject(subject, model, {"pose": x, "global_orient": orient, "transl": transl}, pipeline)
+    vertices, faces, bones = p["vertices"], p["faces"], np.asarray(p["vertex_bones"])
+    if subdivision is not None:
+        par, faces = subdivision
+        vertices = 0.5 * (vertices[par[:, 0]] + vertices[par[:, 1]])
+        bones = bones[par[:, 0]]
+    posed_hair = None
+    if hair is not None:
+        from synth.hair import pose_hair
+
+        posed_hair = pose_hair(hair, p["transforms"])
+    return Person(
+        subject=subject.id, vertices=vertices, faces=faces, vertex_bones=bones, keypoints=p["keypoints"],
+        joints=p["joints"], angles=p["angles"], bone_scales=p["bone_scales"], rest_joints=p["rest_joints"],
+        transforms=p["transforms"], pose=p["pose"], global_orient=p["global_orient"], transl=p["transl"],
+        bone=p["bone"], shape=p["shape"], hair=posed_hair,
+    )  # fmt: skip
+
+
+class PoseSource:
+    """Draws a pose (x, global orientation) from the prior or the motion library."""
+
+    def __init__(self, cfg: GeneratorConfig) -> None:
+        from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
+
+        self.cfg = cfg.poses
+        self.prior_path = self.cfg.prior or DEFAULT_PRIOR
+        self.prior = load_prior(self.prior_path)
+        self.checker = None
+        if self.cfg.plausible and self.cfg.source != "library":
+            import blsm
+            from blsm.mocap.plausible import PoseChecker
+
+            self.checker = PoseChecker(blsm.load())
+        self.clips: list[Any] = []
+        if self.cfg.source != "prior":
+            self.clips = self._load_clips()
+        self.child_clips = [i for i, c in enumerate(self.clips) if c.name in self.cfg.child_clips]
+
+    def _load_clips(self) -> list[Any]:
+        """The library's clips the config keeps (``clips``, ``exclude_clips``); a ValueError naming
+        the library for a clip it does not hold, or for none left."""
+        from blsm.mocap.library import list_clips, load_clip
+
+        files = list_clips(self.cfg.library)
+        names = {Path(f).stem for f in files}
+        unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips, *self.cfg.child_clips) if n not in names]
+        if unknown:
+            raise ValueError(f"{self.cfg.library}: the motion library has no clip {unknown[0]!r}")
+        if self.cfg.clips:
+            files = [f for f in files if Path(f).stem in self.cfg.clips]
+        files = [f for f in files if Path(f).stem not in self.cfg.exclude_clips]
+        if not files:
+            raise ValueError(f"{self.cfg.library}: the motion library holds no clips (after clips/exclude_clips)")
+        clips = [load_clip(f) for f in files]
+        kept = {c.name for c in clips}
+        left_out = [n for n in self.cfg.child_clips if n not in kept]
+        if left_out:
+            raise ValueError(f"{self.cfg.library}: poses.child_clips names {left_out[0]!r}, which clips/exclude_clips leave out")
+        return clips
+
+    def sample(self, rng: np.random.Generator, child: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+        """A pose for one person; ``child`` (younger than 18) restricts library frames to
+        ``poses.child_clips`` where the config names them."""
+        use_lib = self.cfg.source == "library" or (self.cfg.source == "mix" and rng.uniform() < self.cfg.library_rate)
+        if use_lib:
+            if child and self.child_clips:
+                ci = self.child_clips[int(rng.integers(len(self.child_clips)))]
+            else:
+                ci = int(rng.integers(len(self.clips)))
+            clip = self.clips[ci]
+            fr = int(rng.integers(clip.num_frames))
+            return clip.pose[fr].astype(np.float32), clip.global_orient[fr].astype(np.float32), {"source": "library", "clip": clip.name, "frame": fr}
+        for redraws in range(self.cfg.max_redraws + 1):
+            g = torch.Generator().manual_seed(int(rng.integers(2**62)))
+            x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
+            if self.checker is None:
+                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1}
+            if self.checker.check(torch.from_numpy(x)[None]).plausible[0]:
+                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, "redraws": redraws}
+        raise ValueError(
+            f"{self.prior_path}: no plausible pose in {self.cfg.max_redraws + 1} draws "
+            "(a prior of implausible poses; set poses.plausible: false to use it as drawn)"
+        )
+
+
+def place_people(footprints: list[tuple[np.ndarray, float]], gap: float, rng: np.random.Generator) -> list[np.ndarray]:
+    """Horizontal offsets so that the people's footprint discs (centre, radius) stay ``gap`` apart."""
+    placed: list[tuple[np.ndarray, float]] = []
+    offsets = []
+    for centre, r in footprints:
+        pos = np.zeros(2)
+        if placed:
+            for _ in range(200):
+                ang = rng.uniform(0, 2 * math.pi)
+                ref, rr = placed[int(rng.integers(len(placed)))]
+                pos = ref + (rr + r + gap + rng.uniform(0.0, 0.8)) * np.array([math.cos(ang), math.sin(ang)])
+                if all(np.linalg.norm(pos - q) >= rq + r + gap for q, rq in placed):
+                    break
+            else:  # pragma: no cover - 8 people always fit in 200 tries
+                raise RuntimeError("could not place the people apart")
+        placed.append((pos, r))
+        offsets.append(np.array([pos[0] - centre[0], 0.0, pos[1] - centre[1]]))
+    return offsets
+
+
+# ------------------------------------------------------------------------------------------------
+# A worker's state
+
+
+class SampleMaker:
+    """Everything a worker needs to make samples: model, subjects, poses, backgrounds, scenes."""
+
+    def __init__(self, cfg: GeneratorConfig, out: Path, variant: str, threads: int = 0) -> None:
+        """``threads``: the worker's CPU threads, for the denoiser (0: all)."""
+        import blsm
+
+        self.cfg, self.out, self.variant, self.threads = cfg, Path(out), variant, threads
+        self.model = blsm.load()
+        index = json.loads((self.out / SUBJECTS / "index.json").read_text())
+        self.subjects: list[Subject] = [load_subject(self.out / SUBJECTS / f"{k}.npz") for k in sorted(index["subjects"])]
+        self.poses = PoseSource(cfg)
+        m = self.model
+        self.bone_to_part = lab.bone_parts(m.vertex_bones.numpy(), m.vertex_parts.numpy(), m.num_joints)
+        self.regions = lab.keypoint_regions(m.keypoint_joint.numpy(), m.keypoint_vertices.numpy(), m.vertex_bones.numpy(), m.parents)
+        self.is_joint = m.keypoint_joint.numpy() >= 0
+        b = cfg.background
+        self.bg_files = []
+        if b.kind == "hdri":
+            self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
+        elif b.kind == "images":
+            self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
+        self.horizons = bg.read_horizons(b.folder) if b.kind == "images" and b.align_horizon else {}
+        # Hair is grown on Anny's stand-in people only: user scans carry their own.
+        self.hair = cfg.hair.enabled and cfg.pipeline != "raw" and cfg.subjects.source == "anny"
+        # With the backdrop composited, the path tracer renders only the people's window
+        # (synth.render.people_window, passed to the kernel as data: no compile per image).
+        # False renders whole frames (tests and benchmarks compare).
+        self.windowed = True
+        self.head_bone = list(m.bone_names).index("head")
+        self._bg_cache: dict[Path, np.ndarray] = {}
+        self._rigs: dict[int, Rig] = {}
+        self._renderers: dict[tuple, PeopleRenderer] = {}
+
+    def rig(self, si: int) -> Rig:
+        """Subject ``si``'s :class:`Rig` (made on first use)."""
+        if si in self._rigs:
+            return self._rigs[si]
+        s, m, pipe = self.subjects[si], self.model, self.cfg.pipeline
+        if pipe == "blsm":
+            from synth.transfer import transfer_texture
+
+            faces, uv, fuv = m.faces.numpy(), m.uvs.numpy(), m.faces_uv.numpy()
+            tex = transfer_texture(s, m, min(self.cfg.subjects.texture_size, 1024))
+            weights = m.weights.numpy()
+            parents = None
+            if self.cfg.subdivide:
+                parents, faces_new = subdivide(faces)
+                uvp, fuv = subdivide(fuv)
+                uv = 0.5 * (uv[uvp[:, 0]] + uv[uvp[:, 1]])
+                weights = 0.5 * (weights[parents[:, 0]] + weights[parents[:, 1]])
+                faces = faces_new
+        else:
+            faces, uv, fuv, tex, weights, parents = s.faces, s.uv, s.faces_uv, s.texture, s.weights, None
+        spec, hair = None, None
+        if self.hair:
+            from synth.hair import subject_hair, subject_hair_spec
+
+            spec = subject_hair_spec(s, asdict(self.cfg.hair.styles), self.cfg.seed)
+            hair = subject_hair(s, m, spec, pipe)
+        rig = Rig(mesh=RenderMesh.build(faces, uv, fuv), faces=faces,
+                  texture=srgb_to_linear(tex.astype(np.float32) / 255.0), face_bones=lab.face_bones(faces, weights),
+                  parents=parents, hair_spec=spec, hair=hair)  # fmt: skip
+        self._rigs[si] = rig
+        return rig
+
+    def background(self, rng: np.random.Generator, camera: Any) -> bg.Background:
+        b, cam = self.cfg.background, self.cfg.camera
+        scale = float(2.0 ** rng.uniform(*b.exposure_ev))
+        rot = float(rng.uniform(0, 2 * math.pi))
+        if b.kind == "hdri":
+            f = self.bg_files[int(rng.integers(len(self.bg_files)))]
+            if f not in self._bg_cache:
+                self._bg_cache[f] = bg.load_hdri(f, b.env_width)
+            return bg.Background("hdri", self._bg_cache[f], rot, scale, None, {"file": f.name, "rotation": rot, "exposure": scale})
+        env, info = bg.procedural_sky(b.env_width, rng)
+        if b.kind == "images":
+            f = self.bg_files[int(rng.integers(len(self.bg_files)))]
+            if f not in self._bg_cache:
+                self._bg_cache[f] = bg.read_image(f)
+            extra: dict[str, Any] = {}
+            plate = None
+            if self.horizons:  # a described bank: the plate's horizon on the camera's (plates.json)
+                hz = self.horizons.get(f.name)
+                row = bg.horizon_row(camera.K, camera.R) if hz is not None else None
+                if row is not None:
+                    plate = bg.crop_backplate_at_horizon(self._bg_cache[f], hz, cam.width, cam.height, row, rng)
+                extra = {"horizon_row": row if plate is not None else None}
+            if plate is None:
+                plate = bg.crop_backplate(self._bg_cache[f], cam.width, cam.height, rng)
+            return bg.Background("images", env, rot, scale, plate,
+                                 {"file": f.name, "rotation": rot, "exposure": scale, **info, **extra})
+        return bg.Background("default", env, rot, scale, None, {"rotation": rot, "exposure": scale, **info})
+
+    def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool) -> PeopleRenderer:
+        """The scene for these people's meshes. People of one topology and texture size (every
+        Anny subject; the blsm pipeline always) share one scene of ``people.max`` slots, the
+        unused ones hidden, so a worker compiles its kernels once for any people count; people of
+        several topologies (scans, raw pipeline) get a scene per combination."""
+        slots, shapes = meshes, [t.shape[:2] for t in textures]
+        if len({m.key for m in meshes}) == 1 and len(set(shapes)) == 1:
+            slots, shapes = [meshes[0]] * self.cfg.people.max, [shapes[0]] * self.cfg.people.max
+        key = (tuple(m.key for m in slots), tuple(shapes), backplate)
+        r = self._renderers.get(key)
+        if r is None:
+            if len(self._renderers) >= 4:
+                self._renderers.pop(next(iter(self._renderers)))
+            cam, b = self.cfg.camera, self.cfg.background
+            r = PeopleRenderer(
+                slots, shapes, cam.width, cam.height,
+                env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
+                max_depth=self.cfg.render.max_depth, backplate=backplate,
+                denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
+                sampler=self.cfg.render.sampler, denoise_quality=self.cfg.render.denoise_quality,
+            )  # fmt: skip
+            self._renderers[key] = r
+        return r
+
+    def make(self, index: int, rng: np.random.Generator) -> dict[str, bytes]:
+        """Sample ``index``'s fields, from ``rng`` (:func:`synth.shards.sample_rng`) alone."""
+        cfg = self.cfg
+        n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
+        people = [self.draw_person(rng) for _ in range(n)]
+        shells = [p.shell() for p in people]
+        hulls = [outline_index(v) for v in shells]
+        foot = []
+        for v, idx in zip(shells, hulls):
+            xz = v[idx][:, [0, 2]]
+            c = 0.5 * (xz.min(0) + xz.max(0))
+            foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
+        for p, v, idx, d in zip(people, shells, hulls, place_people(foot, cfg.people.gap, rng)):
+            d = d - np.array([0.0, p.vertices[:, 1].min(), 0.0])  # the body's feet on the floor y = 0
+            p.move(d)
+            p.outline = (v[idx] + d).astype(np.float32)
+        outline = np.concatenate([p.outline for p in people])  # every person's hull vertices
+        camera, cam_info = sample_camera(outline, cfg.camera, rng)
+        back = self.background(rng, camera)
+        frame, labels = self.render_frame(index, people, camera, cam_info, back, rng)
+        return self.encode(index, camera, cam_info, back, people, frame, labels)
+
+    def draw_person(self, rng: np.random.Generator) -> Person:
+        """A subject drawn and posed by the pose source (at the origin, before placement)."""
+        si = int(rng.integers(len(self.subjects)))
+        s = self.subjects[si]
+        age = s.meta.get("phenotype", {}).get("age_years")
+        x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0)
+        p = self.pose(si, x, orient, np.zeros(3, np.float32))
+        p.motion = motion
+        return p
+
+    def pose(self, si: int, x: np.ndarray, orient: np.ndarray, transl: np.ndarray) -> Person:
+        """Subject ``si`` posed by :func:`pose_person` with its rig's subdivision and hair; ``si``
+        and ``rig`` attached."""
+        rig = self.rig(si)
+        subdivision = None if rig.parents is None else (rig.parents, rig.faces)
+        p = pose_person(self.subjects[si], self.model, self.cfg.pipeline, x, orient, transl, subdivision, rig.hair)
+        p.si, p.rig = si, rig
+        return p
+
+    def render_frame(self, index: int, people: list[Person], camera: Any, cam_info: dict, back: bg.Background,
+                     rng: np.random.Generator) -> tuple[Any, dict[str, Any]]:
+        """Render the placed ``people`` (each with its ``outline``) and make their labels."""
+        cfg = self.cfg
+        outline = np.concatenate([p.outline for p in people])
+        rigs = [p.rig for p in people]
+        # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
+        # a backplate) and the backdrop is composited after the render: darkened by the people's
+        # shadows, blurred by the lens.
+        composite = cfg.ground.shadows or "f_number" in cam_info
+        r = self.renderer([q.mesh for q in rigs], [q.texture for q in rigs], back.backplate is not None or composite)
+        seed = int(rng.integers(2**31))
+        frame = r.render(
+            [p.vertices for p in people], [q.texture for q in rigs], camera,
+            back.env, back.rotation, back.scale, None if composite else back.backplate, cfg.render.spp, seed,
+            [(p.hair, q.hair.colours) for p, q in zip(people, rigs)] if self.hair else None,
+            # Composited, the backdrop is not path traced: only the people's window is.
+            people_window(camera, outline) if composite and self.windowed else None,
+        )  # fmt: skip
+        if composite:
+            self._composite_backdrop(r, frame, camera, cam_info, back, outline, rng)
+        labels = lab.person_labels(
+            frame, camera,
+            [{"vertices": p.vertices, "outline": p.outline, "faces": q.faces, "face_bones": q.face_bones,
+              "keypoints": p.keypoints, **self._hair_labels(p)} for p, q in zip(people, rigs)],
+            self.bone_to_part, self.regions, self.is_joint,
+        )  # fmt: skip
+        if labels["unassigned"]:
+            raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")
+        return frame, labels
+
+    def _hair_labels(self, p: Person) -> dict[str, Any]:
+        if p.hair is None:
+            return {}
+        from synth.hair import hair_faces
+
+        return {"hair_vertices": p.hair, "hair_faces": hair_faces(), "hair_bone": self.head_bone}
+
+    def _composite_backdrop(self, r: PeopleRenderer, frame: Any, camera: Any, cam_info: dict, back: bg.Background,
+                            outline: np.ndarray, rng: np.random.Generator) -> None:
+        """Composite the backdrop behind the people (``outline``: their hull vertices): darkened where
+        they shadow the ground (:mod:`synth.ground`, with ``ground.shadows``), blurred by the thin
+        lens (:mod:`synth.lens`, with ``camera.f_number``). Records what it did in ``back.info``."""
+        from synth import ground, lens
+
+        g = self.cfg.ground
+        backdrop = back.backplate
+        if backdrop is None:  # the environment seen by the camera, evaluated by the scene's own envmap
+            backdrop = ground.emitter_backdrop(r.mi, r.environment, camera,
+                                               ground.backdrop_supersampling(camera, back.env.shape[1]))
+        if g.shadows:
+            pts = outline.astype(np.float64)
+            centre = 0.5 * (pts.min(0) + pts.max(0))
+            sphere = (centre, float(np.linalg.norm(pts - centre, axis=1).max()) + 0.01)
+            ratio, on_ground = ground.shadow_ratio(
+                ground.mitsuba_ray_test(r.mi, r.scene), camera, back.env, back.rotation, sphere,
+                np.random.default_rng(int(rng.integers(2**63))),
+                samples=g.samples, max_distance=g.max_distance, exclude=frame.alpha >= 1.0,
+            )  # fmt: skip
+            backdrop = backdrop * ratio[..., None]
+            back.info["ground"] = {"shadow_catcher": True, "ground_pixels": int(on_ground.sum()),
+                                   "shadowed_pixels": int((ratio < 0.95).sum())}  # fmt: skip
+        if "f_number" in cam_info:
+            f_px = float(camera.K[0, 0])
+            aperture = cam_info["focal_mm"] / cam_info["f_number"] / 1000.0
+            on, pts = ground.ground_points(camera, np.inf)
+            depth = np.full(on.shape, np.inf)
+            depth[on] = (pts[on] @ camera.R.T + camera.t)[:, 2]
+            coc = lens.circle_of_confusion(depth, cam_info["focus_m"], f_px, aperture)
+            backdrop = lens.defocus(backdrop, coc)
+            back.info["lens"] = {"coc_px_max": round(float(coc.max()), 3), "coc_px_infinity": round(
+                float(lens.circle_of_confusion(np.array([np.inf]), cam_info["focus_m"], f_px, aperture)[0]), 3)}
+        frame.rgb = (frame.rgb + (1.0 - frame.alpha[..., None]) * backdrop).astype(np.float32)
+
+    def encode(self, index, camera, cam_info, back, people: list[Person], frame, labels,
+               extra: dict[str, Any] | None = None, extra_people: list[dict[str, Any]] | None = None) -> dict[str, bytes]:
+        """The sample's fields; ``extra`` adds top-level label keys and ``extra_people`` keys per
+        person (a sequence's, :mod:`synth.sequence`)."""
+        m = self.model
+        plist = [
+            {**self._person_doc(p, lp), **(extra_people[i] if extra_people else {})}
+            for i, (p, lp) in enumerate(zip(people, labels["people"]))
+        ]
+        doc = {
+            "format": fmt.FORMAT,
+            "version": fmt.VERSION,
+            "index": index,
+            "seed": self.cfg.seed,
+            "image": {"width": camera.width, "height": camera.height, "pixel_center": 0.5},
+            "camera": {"K": _l(camera.K), "R": _l(camera.R), "t": _l(camera.t), "info": cam_info},
+            "background": {"kind": back.kind, **{k: (v if not isinstance(v, float) else round(v, 6)) for k, v in back.info.items()}},
+            "keypoint_names": list(m.keypoint_names),
+            "bone_names": list(m.bone_names),
+            "part_names": list(m.part_names),
+            "people": plist,
+        }
+        extra = dict(extra or {})
+        doc["camera"].update(extra.pop("camera", {}))
+        doc.update(extra)
+        rgb = np.round(linear_to_srgb(frame.rgb) * 255.0).astype(np.uint8)
+        return {
+            "rgb.png": fmt.encode_png(rgb),
+            "json": fmt.encode_json(doc),
+            "mask.png": fmt.encode_png(labels["mask"]),
+            "parts.png": fmt.encode_png(labels["parts"], fmt.PART_PALETTE),
+            "bones.png": fmt.encode_png(labels["bones"], fmt.BONE_PALETTE),
+            "depth.exr": fmt.encode_exr(labels["depth"]),
+            "corr.npy.gz": fmt.encode_npy_gz(labels["corr"]),
+        }
+
+    def _person_doc(self, p: Person, lp: dict[str, Any]) -> dict[str, Any]:
+        """Person ``p``'s entry of the sample's ``people`` (``lp``: its labels from the render)."""
+        from blsm.joint_limits import unconstrained_from_angles
+
+        m = self.model
+        x = p.pose
+        if x is None:  # raw: the scan's own angles
+            x = unconstrained_from_angles(torch.as_tensor(p.angles)[None], m.dof_limits)[0].numpy()
+        lengths = _bone_lengths(p.rest_joints, p.keypoints, m)
+        return {
+            "subject": p.subject,
+            "pipeline": self.cfg.pipeline,
+            "motion": p.motion,
+            **({"hair": p.rig.hair_spec.to_json()} if p.hair is not None else {}),
+            "blsm": {
+                "pose": _l(x), "angles": _l(p.angles), "bone": _l(p.bone), "shape": _l(p.shape),
+                "global_orient": _l(p.global_orient), "transl": _l(p.transl),
+            },
+            "bone_lengths": _l(lengths),
+            "keypoints_3d": _l(p.keypoints),
+            "keypoints_3d_cam": _l(lp["keypoints_3d_cam"]),
+            "keypoints_2d": _l(lp["keypoints_2d"]),
+            "visible": [bool(v) for v in lp["visible"]],
+            "in_frame": [bool(v) for v in lp["in_frame"]],
+            "box": lp["box"],
+            "box_full": None if lp["box_full"] is None else _l(lp["box_full"]),
+            "pixels": lp["pixels"],
+        }  # fmt: skip
+
+
+def _l(a: Any) -> Any:
+    """Array to nested lists of Python floats rounded to 1e-6 (stable JSON across runs; the
+    precision the validator allows for is stated in :mod:`synth.format`)."""
+    return fmt.json_round(a)
+
+
+def _bone_lengths(rest_joints: np.ndarray, keypoints: np.ndarray, model: Any) -> np.ndarray:
+    """Per bone, metres: head to its primary child's head in the person's bind pose; leaf bones
+    (head, hands, feet) to their tip keypoint (head top, hand tip, toe tip)."""
+    from blsm import skeleton
+
+    names = model.bone_names
+    tips = {"head": "head_top", "wrist_l": "hand_tip_l", "wrist_r": "hand_tip_r", "ankle_l": "toe_tip_l", "ankle_r": "toe_tip_r"}
+    out = np.zeros(len(names))
+    for j, name in enumerate(names):
+        if name in tips:
+            # Tips are posed points; the leaf bone's length is pose-independent (rigid bone).
+            continue
+        c = names.index(skeleton.PRIMARY_CHILD[name])
+        out[j] = np.linalg.norm(rest_joints[c] - rest_joints[j])
+    kp = list(model.keypoint_names)
+    for name, tip in tips.items():
+        j = names.index(name)
+        out[j] = float(np.linalg.norm(keypoints[kp.index(tip)] - _posed_joint(keypoints, model, j)))
+    return out
+
+
+def _posed_joint(keypoints: np.ndarray, model: Any, j: int) -> np.ndarray:
+    k = list(model.keypoint_joint.numpy()).index(j)
+    return keypoints[k]
