@@ -47,7 +47,7 @@ def test_small_run_writes_a_loadable_model_and_a_report(run):
         assert split["error_mean_mm"] < split["stage1_error_mean_mm"]
     ev = (root / "model_evaluation.md").read_text()
     assert "BLSM-linear" in ev and "SMPL-reimpl" in ev and "Registration error" in ev
-    assert (root / "model_evaluation_shape.png").stat().st_size > 1000
+    assert (root / "figures" / "model_evaluation_shape.png").stat().st_size > 1000
     import torch
 
     body = model(shape=torch.ones(1, 4), bone=torch.ones(1, 4))

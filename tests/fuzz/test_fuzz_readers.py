@@ -689,10 +689,10 @@ def _bad_scan(kind: str, folder: Path) -> tuple[Path, list[str], str]:
     scan = folder / "scan.npz"
     if kind == "zero_byte_npz":
         scan.write_bytes(b"")
-        return scan, [], "unreadable scan file"
+        return scan, [], "not a readable .npz scan file"
     if kind == "garbage_npz":
         scan.write_bytes(np.random.default_rng(7).bytes(2000))
-        return scan, [], "unreadable scan file"
+        return scan, [], "not a readable .npz scan file"
     if kind == "npz_of_something_else":
         np.savez(scan, weights=np.zeros(3))
         return scan, [], "scan"
