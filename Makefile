@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -47,6 +47,16 @@ bench: $(STAMP)
 	$(BIN)/recovery transfer default --real out/transfer_dev --synthetic out/data/test --out out/transfer/check_default
 	$(BIN)/python benchmarks/bench_realism.py --out docs/realism.md --noise configs/synth/preview/noise_hdri.yaml \
 		--scenes 12 --render multijitter:25 ldsampler:16 ldsampler:64 --ref-spp 1024 --rounds 5
+
+# Behaviour kept to the byte across a refactor (docs/architecture.md, "Checked by"): nine small datasets
+# of seven configs hashed file by file into out/identity/identity.json (about 5 minutes on 2 cores; add
+# --ray for a tenth on the Ray engine, which needs the ray extra);
+# compare two such files with `python benchmarks/identity_check.py --compare A.json B.json`.
+identity: $(STAMP)
+	test -f out/motions/summary.csv || $(MAKE) motions
+	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
+	test -f $(HOME)/.cache/blsm-synth/backplates/plates.json || $(BIN)/python scripts/setup_backplates.py
+	$(BIN)/python benchmarks/identity_check.py --out out/identity
 
 # The packaged model, learnt from scans (thesis Sec. 5.4): 1000 Anny stand-in subjects made with
 # the packaged rig, registration, learning, SMPL-reimpl and the held-out evaluation into docs/

@@ -35,9 +35,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-HDRI = "/work/shared/assets/hdri"
-MOTIONS = "/work/main/out/motions"
-MOTIONS_TEST = "/work/main/out/motions_test"
+HDRI = str(ROOT.parent / "shared" / "assets" / "hdri")
+MOTIONS = str(ROOT / "out" / "motions")
+MOTIONS_TEST = str(ROOT / "out" / "motions_test")
 PLATES = str(Path("~/.cache/blsm-synth/backplates").expanduser())
 
 SMALL = ["camera.width=64", "camera.height=64", "subjects.count=2", "subjects.texture_size=256",

@@ -15,8 +15,6 @@ so rotations about x keep their sign and rotations about y and z flip (see ``dof
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 # (name, parent, frame rule, six-part label). Order is topological: parents come first.
@@ -83,20 +81,6 @@ def mirror_name(name: str) -> str:
         if name.startswith(a):
             return b + name[len(a) :]
     return name
-
-
-@dataclass(frozen=True)
-class Skeleton:
-    """Bind-pose skeleton: names, parents, heads (J, 3) and frames (J, 3, 3), in metres."""
-
-    names: tuple[str, ...]
-    parents: tuple[int, ...]
-    heads: np.ndarray  # (J, 3)
-    frames: np.ndarray  # (J, 3, 3), columns are the frame axes in world coordinates
-
-    @property
-    def mirror_index(self) -> list[int]:
-        return [self.names.index(mirror_name(n)) for n in self.names]
 
 
 def bind_frames(

@@ -150,7 +150,6 @@ class PoseChecker:
             straight[:, self._sagittal] = 0.0
             fk, _, A_straight = self._skeleton(straight)
         b, k = self._bone, self._kp
-        self.last_inside = None
 
         # The pelvis' forward axis: its skinning rotation applied to the rest forward +Z.
         forward = A_straight[:, b["pelvis"], :, 2]
@@ -174,7 +173,6 @@ class PoseChecker:
             dist = rest @ E[:, :3].T + E[:, 3]  # (B, N, F), <= 0 inside each face's half-space
             depth = torch.maximum(depth, -dist.max(-1).values)
         inside = depth >= self.margin
-        self.last_depth = depth.numpy()
         fwd = foot_forward.numpy()
         return PoseCheck(foot_forward=fwd, foot_backwards=fwd < 0, limb_in_torso=inside.any(1).numpy(),
                          toes_behind_heel=posed_forward.numpy() < 0)
