@@ -72,7 +72,25 @@ def test_no_private_name_is_imported_from_another_module(package):
             private += [p for p in module.split(".") if p.startswith("_") and not p.startswith("__")]
             if private:
                 found.append(f"{path.relative_to(ROOT)}:{line} from {module} import {private}")
+        found += _private_attributes(path)
     assert not found, found
+
+
+def _private_attributes(path: Path) -> list[str]:
+    """``module._name`` where ``module`` is one of our modules imported by name."""
+    tree = ast.parse(path.read_text())
+    modules = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules |= {a.asname or a.name.split(".")[0] for a in node.names if a.name.split(".")[0] in PACKAGES}
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
+            modules |= {a.asname or a.name for a in node.names}
+    return [
+        f"{path.relative_to(ROOT)}:{node.lineno} {node.value.id}.{node.attr}"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules
+        and node.attr.startswith("_") and not node.attr.startswith("__")
+    ]
 
 
 @pytest.mark.parametrize("package", PACKAGES)
