@@ -82,7 +82,8 @@ def _private_attributes(path: Path) -> list[str]:
     modules = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
-            modules |= {a.asname or a.name.split(".")[0] for a in node.names if a.name.split(".")[0] in PACKAGES}
+            ours = [a for a in node.names if a.name.split(".")[0] in PACKAGES]
+            modules |= {a.asname or a.name.split(".")[0] for a in ours}
         elif isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
             modules |= {a.asname or a.name for a in node.names}
     return [
