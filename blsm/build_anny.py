@@ -183,10 +183,6 @@ def _scaled_chain(b: np.ndarray, heads: np.ndarray, frames: np.ndarray):
     return lin, off
 
 
-LEAF_TIP = {"head": "head_top", "wrist_l": "hand_tip_l", "wrist_r": "hand_tip_r", "ankle_l": "toe_tip_l",
-            "ankle_r": "toe_tip_r"}
-"""Surface keypoint that ends each leaf bone."""
-
 _FLIP = np.array([-1.0, 1.0, 1.0])
 
 
@@ -301,7 +297,7 @@ def _bone_lengths(joints: np.ndarray, verts: np.ndarray, tips: dict[str, int]) -
         if children:
             d = joints[:, children] - joints[:, j : j + 1]
         else:
-            d = verts[:, tips[LEAF_TIP[name]]][:, None] - joints[:, j : j + 1]
+            d = verts[:, tips[skeleton.LEAF_TIPS[name]]][:, None] - joints[:, j : j + 1]
         out.append(np.sqrt((d**2).sum(-1).mean(-1)))
     return np.stack(out, axis=1)
 
@@ -313,8 +309,8 @@ def _bind_skeleton(
     frames (J, 3, 3) from heads and tails."""
     tails = np.zeros_like(heads)
     for j, name in enumerate(skeleton.BONE_NAMES):
-        if name in LEAF_TIP:
-            tails[j] = template[tips[LEAF_TIP[name]]]
+        if name in skeleton.LEAF_TIPS:
+            tails[j] = template[tips[skeleton.LEAF_TIPS[name]]]
         else:
             tails[j] = heads[skeleton.BONE_NAMES.index(skeleton.PRIMARY_CHILD[name])]
     return tails, skeleton.bind_frames(heads, tails)

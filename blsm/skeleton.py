@@ -53,6 +53,15 @@ BONE_PARTS: tuple[int, ...] = tuple(PART_NAMES.index(b[3]) for b in BONES)
 
 # The tail of a bone ends its length; for bones with several children the first listed one.
 # Leaves end at a surface point chosen by the model builder (head top, middle fingertip, toe tip).
+LEAF_TIPS: dict[str, str] = {
+    "head": "head_top",
+    "wrist_l": "hand_tip_l",
+    "wrist_r": "hand_tip_r",
+    "ankle_l": "toe_tip_l",
+    "ankle_r": "toe_tip_r",
+}
+"""The surface keypoint that ends each leaf bone (its tail)."""
+
 PRIMARY_CHILD: dict[str, str] = {
     "pelvis": "spine_01",
     "spine_01": "spine_02",

@@ -45,7 +45,6 @@ from synth.progress import Progress, log
 from synth.shards import ShardWriter, WriteError, shard_name, write_shard
 
 _KEY: str = ""
-_MADE = 0
 TICK_S = 0.25
 """A task reports its progress at most this often (and at its first and last image)."""
 MANIFEST_EVERY_S = 2.0
@@ -63,17 +62,16 @@ def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int
         ``{"shard", "sha256", "samples", "first", "skipped"}``, or ``{"shard", "error"}`` for a
         sample that failed (without ``skip_bad``), or ``{"shard", "write_error"}``.
     """
-    global _KEY, _MADE
+    global _KEY
     key = json.dumps([cfg_json, out, variant, threads], sort_keys=True)
-    if key != _KEY or _MADE >= int(cfg_json["render"]["recycle_after"]):
+    if key != _KEY:  # a new run's settings; within a run make_in_process recycles the worker
         worker.init_worker(cfg_json, out, variant, threads, True)
-        _KEY, _MADE = key, 0
+        _KEY = key
     samples: list[tuple[int, dict[str, bytes]]] = []
     left_out: list[dict[str, Any]] = []
     last_tick = 0.0
     for i in range(start, stop):
-        index, fields, kind, msg = worker.make_one(i)
-        _MADE += 1
+        index, fields, kind, msg = worker.make_in_process(i)
         if i == start or i == stop - 1 or time.time() - last_tick >= TICK_S:
             counter.tick.remote(shard, i - start + 1)
             last_tick = time.time()

@@ -306,7 +306,7 @@ def _generate(
         if engine == "ray":
             from synth.engine_ray import run_ray
 
-            man = run_ray(cfg, cfg_json(cfg), out, writer, plan, variant, meter, on_image)
+            man = run_ray(cfg, writer.config, out, writer, plan, variant, meter, on_image)
         else:
             man = _run(cfg, out, writer, plan, variant, workers, meter, on_image)
         meter.done(man)
@@ -381,7 +381,7 @@ def _run(
     workers = max(1, min(workers, -(-len(indices) // worker.frames_per_sample(cfg))))
     plural = "s" * (workers > 1)
     log(f"{len(indices)} images in {len(todo)} shards -> {out} ({workers} worker{plural}, Mitsuba {variant})")
-    results, pool = _results(cfg, out, indices, variant, workers)
+    results, pool = _results(cfg, writer.config, out, indices, variant, workers)
 
     def make_sample(i: int, rng: np.random.Generator) -> dict[str, bytes]:
         # The samples come from the workers, in index order; each worker drew this same rng itself.
@@ -419,12 +419,13 @@ def _run(
     return man
 
 
-def _results(cfg: GeneratorConfig, out: Path, indices: list[int], variant: str,
+def _results(cfg: GeneratorConfig, config: dict, out: Path, indices: list[int], variant: str,
              workers: int) -> tuple[Iterator[worker.Result], Any]:
     """The worker results of samples ``indices``, in order, and the process pool making them (None
     when this process makes them): one task a sample, or a sequence in a sequence run, so that one
-    worker makes all its frames."""
-    init = (cfg_json(cfg), str(out), variant, max(1, (os.cpu_count() or 1) // workers))
+    worker makes all its frames. ``config`` is ``cfg`` as the run's JSON (:func:`cfg_json`, the
+    writer's ``config``), which the workers load."""
+    init = (config, str(out), variant, max(1, (os.cpu_count() or 1) // workers))
     if not indices:  # a resumed run that is already complete: nothing to load
         return iter(()), None
     if workers == 1:

@@ -135,14 +135,16 @@ class Person:
     outline: np.ndarray | None = None
 
     def move(self, d: np.ndarray) -> None:
-        """Translate the posed person (vertices, keypoints, joints, hair, root) by ``d`` (3,) metres;
-        the ``outline`` is the caller's."""
+        """Translate the posed person (vertices, keypoints, joints, hair, root and the ``outline``
+        once there is one) by ``d`` (3,) metres."""
         self.vertices = (self.vertices + d).astype(np.float32)
         self.keypoints = (self.keypoints + d).astype(np.float32)
         self.joints = (self.joints + d).astype(np.float32)
         if self.hair is not None:
             self.hair = (self.hair + d).astype(np.float32)
         self.transl = (self.transl + d).astype(np.float32)
+        if self.outline is not None:
+            self.outline = (self.outline + d).astype(np.float32)
 
     def shell(self) -> np.ndarray:
         """The posed vertices with the hair's: footprints, framing and boxes use their hull
@@ -256,6 +258,14 @@ class PoseSource:
             f"{self.prior_path}: no plausible pose in {self.cfg.max_redraws + 1} draws "
             "(a prior of implausible poses; set poses.plausible: false to use it as drawn)"
         )
+
+
+def footprint(outline: np.ndarray) -> tuple[np.ndarray, float]:
+    """A person's footprint disc on the ground from its hull vertices ``outline`` (N, 3): the centre
+    (2,) of their x-z bounding box and the radius around it that holds them all, metres."""
+    xz = outline[:, [0, 2]]
+    c = 0.5 * (xz.min(0) + xz.max(0))
+    return c, float(np.linalg.norm(xz - c, axis=1).max())
 
 
 def place_people(footprints: list[tuple[np.ndarray, float]], gap: float, rng: np.random.Generator) -> list[np.ndarray]:
@@ -405,17 +415,11 @@ class SampleMaker:
         cfg = self.cfg
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
         people = [self.draw_person(rng) for _ in range(n)]
-        shells = [p.shell() for p in people]
-        hulls = [outline_index(v) for v in shells]
-        foot = []
-        for v, idx in zip(shells, hulls):
-            xz = v[idx][:, [0, 2]]
-            c = 0.5 * (xz.min(0) + xz.max(0))
-            foot.append((c, float(np.linalg.norm(xz - c, axis=1).max())))
-        for p, v, idx, d in zip(people, shells, hulls, place_people(foot, cfg.people.gap, rng)):
-            d = d - np.array([0.0, p.vertices[:, 1].min(), 0.0])  # the body's feet on the floor y = 0
-            p.move(d)
-            p.outline = (v[idx] + d).astype(np.float32)
+        for p in people:
+            v = p.shell()
+            p.outline = v[outline_index(v)]
+        for p, d in zip(people, place_people([footprint(p.outline) for p in people], cfg.people.gap, rng)):
+            p.move(d - np.array([0.0, p.vertices[:, 1].min(), 0.0]))  # the body's feet on the floor y = 0
         outline = np.concatenate([p.outline for p in people])  # every person's hull vertices
         camera, cam_info = sample_camera(outline, cfg.camera, rng)
         back = self.background(rng, camera)

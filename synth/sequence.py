@@ -44,15 +44,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from synth.camera import outline_index
 from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
-
-if TYPE_CHECKING:
-    from synth.sample import Person
+from synth.sample import Person, footprint
 
 CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
@@ -242,10 +240,8 @@ class Actor:
     """One person of a sequence: a subject playing a window of a clip (module docstring, steps 1-3).
 
     Attributes:
-        si: the subject's index among the worker's subjects.
         posed: seconds from the clip window's start -> the person posed there (not placed).
         frames: the ``T`` frames' posed people, placed by :meth:`SequenceMaker.make`.
-        regions: contact region -> the vertex indices of :func:`contact_regions`.
         keypoints: (T + 2, K, 3) on the frame grid (one row before the first frame and one after
             the last); ``region_vertices`` region -> (T + 2, n, 3) its vertices there.
         lift: (T + 2,) metres each grid row is lifted by (grounding).
@@ -253,10 +249,8 @@ class Actor:
         offset: (3,) the placement's horizontal offset, metres (None before placement).
     """
 
-    si: int
     posed: Callable[[float], Person]
     frames: list[Person]
-    regions: dict[str, np.ndarray]
     keypoints: np.ndarray
     region_vertices: dict[str, np.ndarray]
     lift: np.ndarray
@@ -329,7 +323,7 @@ class SequenceMaker:
         region_vertices = {r: np.stack([g.vertices[idx] for g in grid]).astype(np.float64) for r, idx in regions.items()}
         frames = grid[1:-1]
         return Actor(
-            si=si, posed=posed, frames=frames, regions=regions,
+            posed=posed, frames=frames,
             keypoints=np.stack([g.keypoints for g in grid]).astype(np.float64),
             region_vertices=region_vertices,
             lift=self._lift(grid, region_vertices),
@@ -375,11 +369,9 @@ class SequenceMaker:
             rows = []
             for fr in p.frames:
                 v = fr.shell()
-                idx = outline_index(v)
-                fr.outline = v[idx].astype(np.float32)
-                xz = fr.outline[:, [0, 2]]
-                c = 0.5 * (xz.min(0) + xz.max(0))
-                rows.append([c[0], c[1], float(np.linalg.norm(xz - c, axis=1).max())])
+                fr.outline = v[outline_index(v)].astype(np.float32)
+                c, r = footprint(fr.outline)
+                rows.append([c[0], c[1], r])
             footprints.append(np.array(rows))
         offsets = place_tracks(footprints, cfg.people.gap, rng)
         for p, o in zip(people, offsets, strict=False):
@@ -387,7 +379,6 @@ class SequenceMaker:
             rows = p.offset + np.outer(p.lift, [0.0, 1.0, 0.0])  # (T + 2, 3) per grid row
             for f, fr in enumerate(p.frames):
                 fr.move(rows[f + 1])
-                fr.outline = (fr.outline + rows[f + 1]).astype(np.float32)
             p.keypoints += rows[:, None]
             for r in p.region_vertices:
                 p.region_vertices[r] += rows[:, None]

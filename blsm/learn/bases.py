@@ -17,15 +17,6 @@ import torch
 
 from blsm import skeleton
 
-LEAF_TIPS: dict[str, str] = {
-    "head": "head_top",
-    "wrist_l": "hand_tip_l",
-    "wrist_r": "hand_tip_r",
-    "ankle_l": "toe_tip_l",
-    "ankle_r": "toe_tip_r",
-}
-"""Keypoint that ends each leaf bone (as in :mod:`blsm.build_anny`)."""
-
 SYMMETRY_MODES = ("symmetrize", "augment")
 _FLIP = (-1.0, 1.0, 1.0)
 
@@ -39,7 +30,7 @@ def template_bone_lengths(model) -> torch.Tensor:
     """Bone lengths of a model's bind skeleton (build_anny's definition).
 
     A bone's length is the RMS distance from its head to its children's heads; a leaf ends at its
-    tip keypoint (:data:`LEAF_TIPS`) on the template.
+    tip keypoint (:data:`blsm.skeleton.LEAF_TIPS`) on the template.
 
     Args:
         model: a :class:`blsm.BLSM`.
@@ -54,7 +45,7 @@ def template_bone_lengths(model) -> torch.Tensor:
         if kids:
             d = heads[kids] - heads[j]
         else:
-            k = model.keypoint_names.index(LEAF_TIPS[name])
+            k = model.keypoint_names.index(skeleton.LEAF_TIPS[name])
             tip = (model.template[model.keypoint_vertices[k]] * model.keypoint_weights[k, :, None]).sum(0)
             d = (tip - heads[j])[None]
         out.append(d.pow(2).sum(-1).mean().sqrt())

@@ -30,17 +30,17 @@ HELP = {
 }
 
 
-def _command(name: str, run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+def command(name: str, run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
     """``run`` with a ValueError turned into ``blsm NAME: error: <first line>`` on stderr, exit 2."""
 
-    def command(args: argparse.Namespace) -> int:
+    def wrapped(args: argparse.Namespace) -> int:
         try:
             return run(args)
         except ValueError as exc:
             print(f"blsm {name}: error: {str(exc).splitlines()[0]}", file=sys.stderr)
             return 2
 
-    return command
+    return wrapped
 
 
 def add_parsers(sub: Any) -> None:
@@ -57,7 +57,7 @@ def add_parsers(sub: Any) -> None:
     make.add_argument("--motions", type=Path, default=None,
                       help="motion library folder (default: the pose prior)")
     make.add_argument("--overwrite", action="store_true")
-    make.set_defaults(func=_command("scans", cmd_scans_make))
+    make.set_defaults(func=command("scans", cmd_scans_make))
 
     reg = sub.add_parser(
         "register", help=HELP["register"],
@@ -75,7 +75,7 @@ def add_parsers(sub: Any) -> None:
     reg.add_argument("--model", type=Path, help="BLSM model file (default: the packaged one)")
     reg.add_argument("--batch", type=int, default=4, help="scans registered together (default 4)")
     reg.add_argument("--overwrite", action="store_true", help="replace existing registration files")
-    reg.set_defaults(func=_command("register", cmd_register))
+    reg.set_defaults(func=command("register", cmd_register))
 
     learn = sub.add_parser(
         "learn", help=HELP["learn"],
@@ -87,7 +87,7 @@ def add_parsers(sub: Any) -> None:
     learn.add_argument("--model", type=Path, default=None, help="initial model (default: the packaged one)")
     learn.add_argument("--out", type=Path, required=True, help="learned model file (.npz)")
     learn.add_argument("--report", type=Path, default=None, help="JSON report (default: <out>.report.json)")
-    learn.set_defaults(func=_command("learn", cmd_learn))
+    learn.set_defaults(func=command("learn", cmd_learn))
 
     train = sub.add_parser(
         "train", help=HELP["train"],
@@ -99,7 +99,7 @@ def add_parsers(sub: Any) -> None:
     train.add_argument("--model", default=None,
                        help="initial model (default: the packaged rig, blsm/data/blsm_anny_rig.npz)")
     train.add_argument("--overwrite", action="store_true", help="replace an existing model file")
-    train.set_defaults(func=_command("train", cmd_train))
+    train.set_defaults(func=command("train", cmd_train))
 
     _add_evaluate(sub)
 
@@ -112,7 +112,7 @@ def add_parsers(sub: Any) -> None:
     smpl.add_argument("--iterations", default="100,100,100,300", help="Adam steps of the pose-fit stages")
     smpl.add_argument("--lm-iterations", type=int, default=25)
     smpl.add_argument("--out", required=True, help="output .npz")
-    smpl.set_defaults(func=_command("train-smpl", cmd_train_smpl))
+    smpl.set_defaults(func=command("train-smpl", cmd_train_smpl))
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -137,7 +137,7 @@ def _add_evaluate(sub: Any) -> None:
                     help="fit the registrations, or the true bodies they register (needs gt_points)")
     ev.add_argument("--also", action="append", default=[], metavar="NAME=MODEL.npz",
                     help="another BLSM model to fit alongside (repeatable)")
-    ev.set_defaults(func=_command("evaluate", cmd_evaluate))
+    ev.set_defaults(func=command("evaluate", cmd_evaluate))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -38,6 +38,7 @@ from blsm.learn.landmark_fit import LandmarkSelection, Stage1, default_selection
 from blsm.learn.posing import pose
 from blsm.learn.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
 from blsm.learn.registrations import Registration, correspondence_error
+from blsm.learn.scans import non_manifold_edges
 from blsm.learn.surface_fit import ScanData, fit_surface, refine
 
 __all__ = [
@@ -79,10 +80,9 @@ def scan_data(scan: Any, selection: LandmarkSelection, where: str) -> ScanData:
         raise ValueError(f"{where}: scan vertices contain NaN or inf")
     if f.min() < 0 or f.max() >= len(v):
         raise ValueError(f"{where}: scan faces index outside [0, {len(v)})")
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
-    if (counts > 2).any():
-        raise ValueError(f"{where}: scan is non-manifold ({int((counts > 2).sum())} edges shared by more than 2 faces)")
+    bad = non_manifold_edges(f)
+    if bad:
+        raise ValueError(f"{where}: scan is non-manifold ({bad} edges shared by more than 2 faces)")
     names = [str(n) for n in (scan.landmark_names if scan.landmark_names is not None else [])]
     lms = np.asarray(scan.landmarks if scan.landmarks is not None else np.zeros((0, 3)), dtype=np.float64)
     if lms.shape != (len(names), 3):

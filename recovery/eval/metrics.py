@@ -361,5 +361,5 @@ def foreground_scores(conf: torch.Tensor | np.ndarray, background: int = 0) -> d
 
 
 def vertex_error_mm(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """(N,) mean Euclidean vertex error per mesh, millimetres."""
-    return (pred - target).norm(dim=-1).mean(-1) * 1000.0
+    """(N,) mean Euclidean vertex error per mesh, millimetres (:func:`mpjpe` of the vertices)."""
+    return mpjpe(pred, target) * 1000.0

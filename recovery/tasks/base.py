@@ -22,6 +22,8 @@ from recovery import distributed as D
 from recovery.config import RecoveryConfig
 from recovery.datasets.cache import CropCache, build_caches
 from recovery.datasets.loaders import loaders
+from recovery.utils.geometry import translation_to_cam
+from synth.data import crop_affine
 
 
 @dataclass(frozen=True)
@@ -102,3 +104,12 @@ def describe_images(cfg: RecoveryConfig, train: CropCache, val: CropCache | None
     return (f"[recovery] {cfg.task}: {len(train)} people from {len(cfg.data.train)} datasets; "
             f"val: {0 if val is None else min(len(val), cfg.data.max_val or len(val))} people; "
             f"{cfg.model.backbone}, {cfg.train.steps} steps of {cfg.train.batch_size}{procs}")
+
+
+def label_cams(ds: CropCache, crop: int) -> torch.Tensor:
+    """(N, 3) the weak-perspective cameras ``(s, tx, ty)`` of a cache's labels at its un-augmented
+    ``crop``-pixel crop (:func:`recovery.utils.geometry.translation_to_cam`)."""
+    side = ds.side
+    a = torch.tensor(crop_affine((side / 2, side / 2), side / ds.context, crop), dtype=torch.float32)
+    k = a @ torch.from_numpy(ds.label("K_crop")).float()
+    return translation_to_cam(torch.from_numpy(ds.label("transl_cam")).float(), k, crop)

@@ -42,12 +42,11 @@ from recovery.tasks.base import (
     checkpoint_meta,
     describe_images,
     image_batches,
+    label_cams,
     open_caches,
     set_threads,
 )
-from recovery.utils.geometry import translation_to_cam
 from recovery.utils.schedule import warmup_cosine
-from synth.data import crop_affine
 
 
 def build_model(cfg: RecoveryConfig, body: nn.Module, init: torch.Tensor | None = None,
@@ -289,13 +288,8 @@ def _check_finite(losses: dict[str, torch.Tensor], step: int, keys: torch.Tensor
 
 def theta0(ds: CropCache, layout: ParamLayout, crop: int) -> torch.Tensor:
     """Theta_0 from the training caches' labels at the un-augmented crop."""
-    side = ds.side
-    a = torch.tensor(crop_affine((side / 2, side / 2), side / ds.context, crop), dtype=torch.float32)
-    k = a @ torch.from_numpy(ds.label("K_crop")).float()
-    transl = torch.from_numpy(ds.label("transl_cam")).float()
-    cam = translation_to_cam(transl, k, crop)
     return mean_theta(layout, torch.from_numpy(ds.label("pose")), torch.from_numpy(ds.label("bone")),
-                      torch.from_numpy(ds.label("shape")), cam)
+                      torch.from_numpy(ds.label("shape")), label_cams(ds, crop))
 
 
 def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[HMRTask, CropCache, CropCache | None]:

@@ -40,13 +40,12 @@ from recovery.tasks.base import (
     checkpoint_meta,
     describe_images,
     image_batches,
+    label_cams,
     mesh_statistics,
     open_caches,
     set_threads,
 )
-from recovery.utils.geometry import translation_to_cam
 from recovery.utils.schedule import warmup_cosine
-from synth.data import crop_affine
 
 
 def began_k_update(k: float, l_real: float, l_fake: float, lambda_k: float, gamma: float) -> float:
@@ -251,10 +250,7 @@ class MeshTask:
 
 def cam_mean(ds: CropCache, crop: int) -> torch.Tensor:
     """(3,) the mean ``(s, tx, ty)`` of the training caches' labels at the un-augmented crop."""
-    side = ds.side
-    a = torch.tensor(crop_affine((side / 2, side / 2), side / ds.context, crop), dtype=torch.float32)
-    k = a @ torch.from_numpy(ds.label("K_crop")).float()
-    return translation_to_cam(torch.from_numpy(ds.label("transl_cam")).float(), k, crop).mean(0)
+    return label_cams(ds, crop).mean(0)
 
 
 def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[MeshTask, CropCache, CropCache | None]:

@@ -14,17 +14,13 @@ from recovery_helpers import CONTEXT, CROP
 from blsm.skeleton import mirror_name
 from recovery.config import AugmentSpec
 from recovery.datasets.augment import BatchAugment
-from recovery.datasets.cache import CropCache, build_cache
+from recovery.datasets.cache import CropCache, build_cache, stack_items
 from recovery.datasets.sampling import ResumableSampler, spread_indices
 from recovery.utils.geometry import project
 from synth.data import CropParams, SynthDataset
 
 MIRROR = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
 TURN = CropParams(rotation_deg=23.0, scale=0.85, shift=(0.04, -0.03))
-
-
-def _stack(items):
-    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +31,7 @@ def cache(cache_dir):
 @pytest.fixture(scope="module")
 def raw(cache):
     """Every cache item, stacked (uint8 images at CONTEXT times the crop's field of view)."""
-    return _stack([cache[(0, i)] for i in range(len(cache))])
+    return stack_items([cache[(0, i)] for i in range(len(cache))])
 
 
 def _augment(cache, model, spec=None, seed=0):
@@ -70,7 +66,7 @@ def test_centre_of_the_cache_is_the_synth_dataset_crop(cache, raw, fake_root, mo
     image to its uint8 quantisation."""
     got = _augment(cache, model)([cache[(0, i)] for i in range(len(cache))])
     ds = SynthDataset(fake_root, crop=CROP, box_scale=1.2)
-    ref = _stack([ds[i] for i in range(len(ds))])
+    ref = stack_items([ds[i] for i in range(len(ds))])
     assert (got["keypoints_2d"][..., :2] - ref["keypoints_2d"][..., :2]).abs().max() < 1e-3  # px
     assert torch.equal(got["keypoints_2d"][..., 2], ref["keypoints_2d"][..., 2])
     assert (got["keypoints_3d"] - ref["keypoints_3d"]).abs().max() < 1e-5  # m
