@@ -37,6 +37,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "truncation": ("close-ups that cut the person (data.effects.truncation_prob 0.5)", ("base",), "truncation"),
     "recipe": ("recipe: backbone at 0.1x the rate, frozen BatchNorm statistics", ("base",), "recipe"),
     "combined": ("every lever: backplates, effects, close-ups, recipe", ("plates",), "combined"),
+    "garments": ("clothing geometry: garments as meshes over the body (synth.garments)", ("garments",), "garments"),
 }
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 

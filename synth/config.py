@@ -311,6 +311,40 @@ class HairConfig:
 
 
 @dataclass(frozen=True)
+class GarmentFits:
+    """Relative weights of the garment fits of :mod:`synth.garments` (0 leaves a fit out)."""
+
+    fitted: float = 0.3
+    regular: float = 0.45
+    loose: float = 0.25
+
+    def __post_init__(self) -> None:
+        w = [self.fitted, self.regular, self.loose]
+        if min(w) < 0 or sum(w) <= 0:
+            raise ValueError(f"garments.fits must be non-negative weights, not all 0, got {w}")
+
+
+@dataclass(frozen=True)
+class GarmentsConfig:
+    """Clothing geometry (:mod:`synth.garments`; off by default): each of Anny's people wears its
+    painted outfit as cloth over the body (a layer standing off the skin, a skirt or dress as a
+    tube), its fit drawn by ``fits``' weights; a long-sleeved top is a jacket with probability
+    ``jacket``, a skirt a dress with probability ``dress``. Labels stay the body's; masks and parts
+    include the clothes. Needs the ``rigged`` pipeline and ``subjects.source: anny`` with subjects
+    made by this version (their outfit borders, ``meta.outfit_cuts``)."""
+
+    enabled: bool = False
+    fits: GarmentFits = field(default_factory=GarmentFits)
+    jacket: float = 0.4
+    dress: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in ("jacket", "dress"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"garments.{name} must be a probability in [0, 1], got {getattr(self, name)}")
+
+
+@dataclass(frozen=True)
 class CameraPaths:
     """Relative weights of the camera paths of a sequence (:mod:`synth.camera_paths`; 0 leaves a
     path out) and their parameters, each drawn uniformly per sequence from its ``[low, high]``."""
@@ -439,6 +473,7 @@ class GeneratorConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     ground: GroundConfig = field(default_factory=GroundConfig)
     hair: HairConfig = field(default_factory=HairConfig)
+    garments: GarmentsConfig = field(default_factory=GarmentsConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     engine: EngineConfig = field(default_factory=EngineConfig)
     sequence: SequenceConfig = field(default_factory=SequenceConfig)
@@ -454,6 +489,8 @@ class GeneratorConfig:
             raise ValueError(f"pipeline must be rigged, raw or blsm, got {self.pipeline!r}")
         if self.subdivide and self.pipeline != "blsm":
             raise ValueError("subdivide applies to the blsm pipeline only")
+        if self.garments.enabled and (self.pipeline != "rigged" or self.subjects.source != "anny"):
+            raise ValueError("garments.enabled needs pipeline: rigged and subjects.source: anny (the painted outfits)")
         if self.sequence.enabled:
             if self.poses.source != "library":
                 raise ValueError("sequence.enabled needs poses.source: library (each person plays a motion clip)")

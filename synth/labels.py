@@ -12,7 +12,9 @@ keypoint: for a surface keypoint within ``SURFACE_TOL`` of it, for a joint (insi
 front of it by less than ``JOINT_DEPTH``. A keypoint hidden by the body itself (an arm behind the
 torso, the far ear) or by another person is therefore not visible. Hair (:mod:`synth.hair`) is part
 of its person and of the head: it hides the surface keypoints under it (an ear under long hair) and
-counts as the head's surface for the joints inside the head.
+counts as the head's surface for the joints inside the head. Clothes (:mod:`synth.garments`) are
+part of their person and of the bone of the body under them, and count as the body's surface (a
+clothed elbow or hip is visible, as annotators of photographs mark it).
 """
 
 from __future__ import annotations
@@ -108,6 +110,32 @@ def assign_hits(frame: Frame, meshes: list[tuple[np.ndarray, np.ndarray]]) -> tu
     return person, bary
 
 
+def _hit_meshes(people: list[dict]) -> tuple[list, list[int], list[int], list[np.ndarray], list[bool]]:
+    """The meshes a hit can be on: every body, then every hair, cloth layer and skirt. Per mesh:
+    (vertices, faces), its person, the offset of its faces in the person's correspondence
+    numbering (body, hair, layer, skirt), each face's bone, and whether it is hair."""
+    entries = [(p["vertices"], p["faces"]) for p in people]
+    owner, offset = list(range(len(people))), [0] * len(people)
+    face_bones, is_hair = [np.asarray(p["face_bones"]) for p in people], [False] * len(people)
+    for i, p in enumerate(people):
+        nb = len(p["faces"])
+        nh = len(p["hair_faces"]) if p.get("hair_vertices") is not None else 0
+        extra = []
+        if nh:
+            extra.append((p["hair_vertices"], p["hair_faces"], 0, np.full(nh, p.get("hair_bone", 0)), True))
+        if p.get("cloth_vertices") is not None:
+            extra.append((p["cloth_vertices"], p["faces"], nb + nh, face_bones[i], False))
+        if p.get("skirt_vertices") is not None:
+            extra.append((p["skirt_vertices"], p["skirt_faces"], 2 * nb + nh, np.asarray(p["skirt_face_bones"]), False))
+        for v, f, off, fb, hair in extra:
+            entries.append((v, f))
+            owner.append(i)
+            offset.append(nb if hair else off)
+            face_bones.append(fb)
+            is_hair.append(hair)
+    return entries, owner, offset, face_bones, is_hair
+
+
 def person_labels(
     frame: Frame,
     camera: Camera,
@@ -127,7 +155,12 @@ def person_labels(
             its person's mask, to the head bone and part; its depth is the hair's; its
             correspondence face is ``F + f`` for hair face ``f`` (the person's rendered mesh is the
             body followed by the hair); it hides the surface keypoints under it (eyes, ears) but
-            not the joints inside the head.
+            not the joints inside the head. Optionally clothes (:mod:`synth.garments`):
+            ``cloth_vertices`` (V, 3), the cloth layer over the body's faces (a pixel on layer face
+            ``f`` gets body face ``f``'s bone; correspondence face ``F + Fh + f``), and a skirt:
+            ``skirt_vertices``, ``skirt_faces`` (Fs, 3) and ``skirt_face_bones`` (Fs,)
+            (correspondence face ``F + Fh + F + f``). Clothes are the person's surface for keypoint
+            visibility.
         bone_to_part: (J,) part index per bone.
         regions: per keypoint, the bones that may show it.
         keypoint_is_joint: (K,) bool.
@@ -139,25 +172,18 @@ def person_labels(
         contains: should be 0).
     """
     h, w = frame.hit.shape
-    # The meshes a hit can be on: every body, then every hair (entry -> person, face offset).
-    entries = [(p["vertices"], p["faces"]) for p in people]
-    owner, offset = list(range(len(people))), [0] * len(people)
-    for i, p in enumerate(people):
-        if p.get("hair_vertices") is not None:
-            entries.append((p["hair_vertices"], p["hair_faces"]))
-            owner.append(i)
-            offset.append(len(p["faces"]))
+    entries, owner, offset, face_bones, is_hair = _hit_meshes(people)
     entry, bary = assign_hits(frame, entries)
     hit = entry >= 0
-    person = np.where(hit, np.asarray(owner)[np.maximum(entry, 0)], -1)
-    on_hair = entry >= len(people)
-    face = np.where(hit, frame.face + np.asarray(offset)[np.maximum(entry, 0)], -1)
+    e = np.maximum(entry, 0)
+    person = np.where(hit, np.asarray(owner)[e], -1)
+    on_hair = hit & np.asarray(is_hair)[e]
+    face = np.where(hit, frame.face + np.asarray(offset)[e], -1)
     mask = np.where(hit, person + 1, 0).astype(np.uint8)
     bones = np.zeros((h, w), np.uint8)
-    for i, p in enumerate(people):
-        sel = (person == i) & ~on_hair
-        bones[sel] = p["face_bones"][frame.face[sel]] + 1
-        bones[(person == i) & on_hair] = p.get("hair_bone", 0) + 1
+    for k, fb in enumerate(face_bones):
+        sel = entry == k
+        bones[sel] = fb[frame.face[sel]] + 1
     parts = np.where(hit, bone_to_part[np.maximum(bones.astype(np.int64) - 1, 0)] + 1, 0).astype(np.uint8)
     depth = np.zeros((h, w), np.float32)
     depth[hit] = (frame.position[hit].astype(np.float64) @ camera.R[2] + camera.t[2]).astype(np.float32)

@@ -85,6 +85,15 @@ def _hair_bsdf(variant: str) -> Any:
         "type": "principled", "base_color": colour, "roughness": 0.45, "specular": 0.35}})  # fmt: skip
 
 
+@functools.lru_cache(maxsize=None)
+def _skirt_bsdf(variant: str) -> Any:
+    """The skirts' BSDF (:mod:`synth.garments`), one per process and variant like the hair's: a
+    two-sided diffuse cloth (its inside shows under the hem), colour per vertex."""
+    mi = load_mitsuba(variant)
+    return mi.load_dict({"type": "twosided", "bsdf": {
+        "type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}})  # fmt: skip
+
+
 def people_window(camera: Camera, points: np.ndarray, quantum: int = 1, margin: int = 1) -> tuple[int, int, int, int]:
     """The pixels ``(x0, y0, width, height)`` that can see a person: the box of the projected
     ``points`` (the people's vertices or their hull vertices, ``synth.camera.outline_index``,
@@ -214,6 +223,7 @@ class PeopleRenderer:
         hair: bool = False,
         sampler: str = "independent",
         denoise_quality: str = "high",
+        garments: bool = False,
     ) -> None:
         """Load the scene.
 
@@ -227,6 +237,9 @@ class PeopleRenderer:
             hair: every person slot also holds a hair (:mod:`synth.hair`; the same topology for all):
                 ribbons with per-vertex colour, seen from both sides, slightly glossy (a two-sided
                 principled BSDF, roughness 0.45, specular 0.35).
+            garments: every person slot also holds a cloth layer (the person's topology, texture
+                and BSDF: one BSDF object for both) and a skirt (:mod:`synth.garments`; the same
+                topology for all; hidden where a person has none).
             sampler: the path tracer's Mitsuba sampler (``independent``, or a stratified,
                 multi-jittered or low-discrepancy one: less noise at the same samples per pixel).
         """
@@ -237,6 +250,7 @@ class PeopleRenderer:
         self.meshes = meshes
         self.backplate = backplate
         self.hair = hair
+        self.garments = garments
         self.denoiser = None
         if denoise:
             from synth.denoise import shared_denoiser
@@ -270,6 +284,7 @@ class PeopleRenderer:
         self.spare_emitter = mi.load_dict({"type": "constant"})
         self._warm = False
         self._hair_inc = None
+        self._skirt_inc = None
         self._hidden: set[int] = set()  # slots collapsed out of sight (:meth:`_hide`)
         self._textures: dict[int, np.ndarray] = {}  # the texture array each slot shows now
         self._env: np.ndarray | None = None  # the environment array uploaded now
@@ -299,7 +314,7 @@ class PeopleRenderer:
         texels until :meth:`render`) and, with hair, the hair's."""
         mi = self.mi
         props = mi.Properties()
-        props["bsdf"] = mi.load_dict(
+        bsdf = props["bsdf"] = mi.load_dict(
             {
                 "type": "diffuse",
                 "reflectance": {
@@ -310,49 +325,86 @@ class PeopleRenderer:
                 },
             }
         )
-        mesh = mi.Mesh(
-            f"person_{i}", len(m.split_vertex), len(m.split_faces), props=props,
-            has_vertex_normals=True, has_vertex_texcoords=True,
-        )  # fmt: skip
+        shapes = {f"person_{i}": self._textured_mesh(f"person_{i}", m, bsdf)}
+        if self.hair:
+            shapes[f"hair_{i}"] = self._hair_mesh(i)
+        if self.garments:  # after the person: the shared BSDF's parameters are the person's
+            from synth.garments import skirt_faces, skirt_vertex_count
+
+            shapes[f"cloth_{i}"] = self._textured_mesh(f"cloth_{i}", m, bsdf)
+            shapes[f"skirt_{i}"] = self._coloured_mesh(f"skirt_{i}", skirt_vertex_count(), skirt_faces(),
+                                                       _skirt_bsdf(self.variant))  # fmt: skip
+        return shapes
+
+    def _textured_mesh(self, name: str, m: RenderMesh, bsdf: Any) -> Any:
+        mi = self.mi
+        props = mi.Properties()
+        props["bsdf"] = bsdf
+        mesh = mi.Mesh(name, len(m.split_vertex), len(m.split_faces), props=props, has_vertex_normals=True,
+                       has_vertex_texcoords=True)  # fmt: skip
         p = mi.traverse(mesh)
         p["vertex_positions"] = mi.Float(np.zeros(3 * len(m.split_vertex), dtype=np.float32))
         p["faces"] = mi.UInt32(m.split_faces.reshape(-1))
         p["vertex_texcoords"] = mi.Float(m.texcoords.reshape(-1))
         p.update()
-        shapes = {f"person_{i}": mesh}
-        if self.hair:
-            shapes[f"hair_{i}"] = self._hair_mesh(i)
-        return shapes
+        return mesh
 
-    def _hide(self, i: int) -> None:
-        """Collapse slot ``i``'s meshes (person and hair) to one point under the ground: zero-area
-        triangles, which no ray hits (no camera, shadow ray or label ray sees them). Uploaded once
-        until the slot shows a person again."""
-        if i in self._hidden:
-            return
-        mi, p = self.mi, self.params
-        names = [f"person_{i}"] + ([f"hair_{i}"] if self.hair else [])
-        for name in names:
-            key = f"group_{i}.{name}" if self.instanced else name
-            nv = len(p[f"{key}.vertex_positions"]) // 3
-            p[f"{key}.vertex_positions"] = mi.Float(np.tile(np.array(HIDDEN_POINT, np.float32), nv))
-            p[f"{key}.vertex_normals"] = mi.Float(np.tile(np.array([0.0, 1.0, 0.0], np.float32), nv))
-        self._hidden.add(i)
-
-    def _hair_mesh(self, i: int) -> Any:
-        from synth.hair import hair_faces, num_vertices
-
+    def _coloured_mesh(self, name: str, nv: int, faces: np.ndarray, bsdf: Any) -> Any:
+        """A mesh of ``nv`` vertices and ``faces`` with a per-vertex colour (``vertex_color``)."""
         mi = self.mi
         props = mi.Properties()
-        props["bsdf"] = _hair_bsdf(self.variant)
-        nv, faces = num_vertices(), hair_faces()
-        mesh = mi.Mesh(f"hair_{i}", nv, len(faces), props=props, has_vertex_normals=True)
+        props["bsdf"] = bsdf
+        mesh = mi.Mesh(name, nv, len(faces), props=props, has_vertex_normals=True)
         mesh.add_attribute("vertex_color", 3, mi.Float(np.full(3 * nv, 0.1, np.float32)))
         p = mi.traverse(mesh)
         p["vertex_positions"] = mi.Float(np.zeros(3 * nv, dtype=np.float32))
         p["faces"] = mi.UInt32(faces.reshape(-1).astype(np.uint32))
         p.update()
         return mesh
+
+    def _hide(self, i: int) -> None:
+        """Collapse slot ``i``'s meshes (person, hair, clothes) to one point under the ground:
+        zero-area triangles, which no ray hits (no camera, shadow ray or label ray sees them).
+        Uploaded once until the slot shows a person again."""
+        if i in self._hidden:
+            return
+        names = [f"person_{i}"] + ([f"hair_{i}"] if self.hair else [])
+        names += [f"cloth_{i}", f"skirt_{i}"] if self.garments else []
+        for name in names:
+            self._collapse(i, name)
+        self._hidden.add(i)
+
+    def _collapse(self, i: int, name: str) -> None:
+        mi, p = self.mi, self.params
+        key = f"group_{i}.{name}" if self.instanced else name
+        nv = len(p[f"{key}.vertex_positions"]) // 3
+        p[f"{key}.vertex_positions"] = mi.Float(np.tile(np.array(HIDDEN_POINT, np.float32), nv))
+        p[f"{key}.vertex_normals"] = mi.Float(np.tile(np.array([0.0, 1.0, 0.0], np.float32), nv))
+
+    def _hair_mesh(self, i: int) -> Any:
+        from synth.hair import hair_faces, num_vertices
+
+        return self._coloured_mesh(f"hair_{i}", num_vertices(), hair_faces(), _hair_bsdf(self.variant))
+
+    def _assign_clothes(self, i: int, layer: np.ndarray, skirt: np.ndarray | None, colours: np.ndarray | None) -> None:
+        mi, p = self.mi, self.params
+        m = self.meshes[i]
+        key = f"group_{i}.cloth_{i}" if self.instanced else f"cloth_{i}"
+        normals = vertex_normals(np.asarray(layer, np.float32), m.faces, m.incidence)
+        p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(layer[m.split_vertex], dtype=np.float32).reshape(-1))
+        p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals[m.split_vertex]).reshape(-1))
+        if skirt is None:
+            self._collapse(i, f"skirt_{i}")
+            return
+        from synth.garments import skirt_faces, skirt_vertex_count
+
+        if self._skirt_inc is None:
+            self._skirt_inc = face_incidence(skirt_faces(), skirt_vertex_count())
+        key = f"group_{i}.skirt_{i}" if self.instanced else f"skirt_{i}"
+        normals = vertex_normals(np.asarray(skirt, np.float32), skirt_faces(), self._skirt_inc)
+        p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(skirt, dtype=np.float32).reshape(-1))
+        p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals).reshape(-1))
+        p[f"{key}.vertex_color"] = mi.Float(np.ascontiguousarray(colours, dtype=np.float32).reshape(-1))
 
     def _hair_incidence(self) -> Any:
         if self._hair_inc is None:
@@ -374,6 +426,7 @@ class PeopleRenderer:
         seed: int = 0,
         hair: list[tuple[np.ndarray, np.ndarray]] | None = None,
         window: tuple[int, int, int, int] | None = None,
+        clothes: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]] | None = None,
     ) -> Frame:
         """Render one frame.
 
@@ -400,6 +453,9 @@ class PeopleRenderer:
                 image is 0 with alpha 0 elsewhere. Only where the environment is hidden
                 (``backplate=True``), since outside the window nothing would show it. The label
                 pass always covers the whole image.
+            clothes: per person, the posed cloth layer's (V, 3) vertices (the person's topology)
+                and the posed skirt's (S, 3) vertices and (S, 3) linear colours, or None, None
+                without a skirt (the renderer must have been built with ``garments=True``).
         """
         mi = self.mi
         if (camera.width, camera.height) != (self.width, self.height):
@@ -409,6 +465,8 @@ class PeopleRenderer:
             raise ValueError(f"need 1 to {len(self.meshes)} meshes and as many textures, got {n}, {len(textures)}")
         if (hair is not None) != self.hair or (hair is not None and len(hair) != n):
             raise ValueError(f"this renderer {'needs' if self.hair else 'has no'} a hair per person")
+        if (clothes is not None) != self.garments or (clothes is not None and len(clothes) != n):
+            raise ValueError(f"this renderer {'needs' if self.garments else 'has no'} clothes per person")
         full = (0, 0, self.width, self.height)
         window = full if window is None else tuple(int(w) for w in window)
         x0, y0, ww, wh = window
@@ -426,7 +484,7 @@ class PeopleRenderer:
             if not self._warm:
                 self._textures.clear()  # both warm-up assignments upload everything
                 self._env = None
-            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair)
+            self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair, clothes)
         self._warm = True
         sensors = self.scene.sensors()
         image = trace_window(mi, self.scene, sensors[0], self.scene.integrator(), window, spp, seed)
@@ -455,7 +513,7 @@ class PeopleRenderer:
         face[~hit] = -1
         return Frame(rgb=rgb.astype(np.float32), alpha=alpha, hit=hit, position=position, face=face)
 
-    def _assign(self, vertices, textures, camera, env, env_rotation_rad, env_scale, hair=None) -> None:
+    def _assign(self, vertices, textures, camera, env, env_rotation_rad, env_scale, hair=None, clothes=None) -> None:
         mi, p = self.mi, self.params
         import drjit as dr
 
@@ -483,6 +541,8 @@ class PeopleRenderer:
             p[f"{key}.vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).reshape(-1))
             p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals).reshape(-1))
             p[f"{key}.vertex_color"] = mi.Float(np.ascontiguousarray(colours, dtype=np.float32).reshape(-1))
+        for i, (layer, skirt, colours) in enumerate(clothes or []):
+            self._assign_clothes(i, layer, skirt, colours)
         if self._env is not env:  # the same HDRI again: its texels and sampling tables are kept
             p["env.data"] = mi.TensorXf(np.ascontiguousarray(env, dtype=np.float32))
             self._env = env

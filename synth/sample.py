@@ -38,6 +38,7 @@ from synth.render import PeopleRenderer, RenderMesh, people_window
 from synth.subjects import Subject, load_subject, pose_subject
 
 if TYPE_CHECKING:
+    from synth.garments import GarmentMesh, GarmentSpec
     from synth.hair import HairMesh, HairSpec
 
 SUBJECTS = "subjects"
@@ -79,6 +80,8 @@ class Rig:
             ``blsm`` pipeline with ``subdivide``), else None.
         hair_spec: the subject's hair (:mod:`synth.hair`), or None without hair.
         hair: that hair grown on the subject's rest body, or None.
+        garment_spec, garments: the subject's clothing geometry (:mod:`synth.garments`) and its
+            rest meshes, or None; ``weights`` (V, J) the body's LBS weights the layer is posed with.
     """
 
     mesh: RenderMesh
@@ -88,6 +91,9 @@ class Rig:
     parents: np.ndarray | None
     hair_spec: HairSpec | None = None
     hair: HairMesh | None = None
+    garment_spec: GarmentSpec | None = None
+    garments: GarmentMesh | None = None
+    weights: np.ndarray | None = None
 
 
 @dataclass(eq=False)
@@ -107,6 +113,7 @@ class Person:
         global_orient, transl: (3,) the root's rotation vector and translation; ``bone`` and
             ``shape`` the subject's coefficients.
         hair: (H, 3) float32 posed hair vertices (:mod:`synth.hair`), or None.
+        cloth, skirt: (V, 3) the posed cloth layer and (S, 3) skirt (:mod:`synth.garments`), or None.
         motion: where the pose came from (the label's ``motion``).
         si: the subject's index among the worker's subjects (-1 when rebuilt by ``validate``).
         rig: the subject's :class:`Rig` (None when rebuilt by ``validate``).
@@ -129,6 +136,8 @@ class Person:
     bone: np.ndarray
     shape: np.ndarray
     hair: np.ndarray | None = None
+    cloth: np.ndarray | None = None
+    skirt: np.ndarray | None = None
     motion: dict[str, Any] = field(default_factory=dict)
     si: int = -1
     rig: Rig | None = None
@@ -142,14 +151,19 @@ class Person:
         self.joints = (self.joints + d).astype(np.float32)
         if self.hair is not None:
             self.hair = (self.hair + d).astype(np.float32)
+        if self.cloth is not None:
+            self.cloth = (self.cloth + d).astype(np.float32)
+        if self.skirt is not None:
+            self.skirt = (self.skirt + d).astype(np.float32)
         self.transl = (self.transl + d).astype(np.float32)
         if self.outline is not None:
             self.outline = (self.outline + d).astype(np.float32)
 
     def shell(self) -> np.ndarray:
-        """The posed vertices with the hair's: footprints, framing and boxes use their hull
-        vertices, which hold the extremes (:func:`synth.camera.outline_index`)."""
-        return self.vertices if self.hair is None else np.concatenate([self.vertices, self.hair])
+        """The posed vertices with the hair's and the clothes': footprints, framing and boxes use
+        their hull vertices, which hold the extremes (:func:`synth.camera.outline_index`)."""
+        parts = [a for a in (self.vertices, self.hair, self.cloth, self.skirt) if a is not None]
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
 
 def pose_person(
@@ -161,6 +175,7 @@ def pose_person(
     transl: np.ndarray,
     subdivision: tuple[np.ndarray, np.ndarray] | None = None,
     hair: HairMesh | None = None,
+    garments: tuple[GarmentMesh, np.ndarray] | None = None,
 ) -> Person:
     """``subject`` posed (:func:`synth.subjects.pose_subject`), subdivided as its render mesh is,
     with its hair posed: what the generator renders and ``synth validate`` rebuilds.
@@ -173,6 +188,8 @@ def pose_person(
             (3,) its translation, metres (all three ignored by ``raw``).
         subdivision: :func:`subdivide`'s ``(parents, faces)`` of the render mesh, or None.
         hair: the subject's hair in the rest frame, or None.
+        garments: the subject's clothes in the rest frame (:mod:`synth.garments`) and the body's
+            (V, J) weights, or None.
     """
     p = pose_subject(subject, model, {"pose": x, "global_orient": orient, "transl": transl}, pipeline)
     vertices, faces, bones = p["vertices"], p["faces"], np.asarray(p["vertex_bones"])
@@ -185,11 +202,16 @@ def pose_person(
         from synth.hair import pose_hair
 
         posed_hair = pose_hair(hair, p["transforms"])
+    cloth = skirt = None
+    if garments is not None:
+        from synth.garments import pose_garments
+
+        cloth, skirt = pose_garments(garments[0], garments[1], p["transforms"])
     return Person(
         subject=subject.id, vertices=vertices, faces=faces, vertex_bones=bones, keypoints=p["keypoints"],
         joints=p["joints"], angles=p["angles"], bone_scales=p["bone_scales"], rest_joints=p["rest_joints"],
         transforms=p["transforms"], pose=p["pose"], global_orient=p["global_orient"], transl=p["transl"],
-        bone=p["bone"], shape=p["shape"], hair=posed_hair,
+        bone=p["bone"], shape=p["shape"], hair=posed_hair, cloth=cloth, skirt=skirt,
     )  # fmt: skip
 
 
@@ -352,9 +374,17 @@ class SampleMaker:
 
             spec = subject_hair_spec(s, asdict(self.cfg.hair.styles), self.cfg.seed)
             hair = subject_hair(s, m, spec, pipe)
+        gspec, garments = None, None
+        if self.cfg.garments.enabled:
+            from synth.garments import subject_garment_spec, subject_garments
+
+            g = self.cfg.garments
+            gspec = subject_garment_spec(s, self.cfg.seed, asdict(g.fits), g.jacket, g.dress)
+            garments = subject_garments(s, m, gspec)
         rig = Rig(mesh=RenderMesh.build(faces, uv, fuv), faces=faces,
                   texture=srgb_to_linear(tex.astype(np.float32) / 255.0), face_bones=lab.face_bones(faces, weights),
-                  parents=parents, hair_spec=spec, hair=hair)  # fmt: skip
+                  parents=parents, hair_spec=spec, hair=hair, garment_spec=gspec, garments=garments,
+                  weights=weights if garments is not None else None)  # fmt: skip
         self._rigs[si] = rig
         return rig
 
@@ -406,6 +436,7 @@ class SampleMaker:
                 max_depth=self.cfg.render.max_depth, backplate=backplate,
                 denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
                 sampler=self.cfg.render.sampler, denoise_quality=self.cfg.render.denoise_quality,
+                garments=self.cfg.garments.enabled,
             )  # fmt: skip
             self._renderers[key] = r
         return r
@@ -441,7 +472,9 @@ class SampleMaker:
         and ``rig`` attached."""
         rig = self.rig(si)
         subdivision = None if rig.parents is None else (rig.parents, rig.faces)
-        p = pose_person(self.subjects[si], self.model, self.cfg.pipeline, x, orient, transl, subdivision, rig.hair)
+        garments = None if rig.garments is None else (rig.garments, rig.weights)
+        p = pose_person(self.subjects[si], self.model, self.cfg.pipeline, x, orient, transl, subdivision, rig.hair,
+                        garments)  # fmt: skip
         p.si, p.rig = si, rig
         return p
 
@@ -463,13 +496,15 @@ class SampleMaker:
             [(p.hair, q.hair.colours) for p, q in zip(people, rigs)] if self.hair else None,
             # Composited, the backdrop is not path traced: only the people's window is.
             people_window(camera, outline) if composite and self.windowed else None,
+            [(p.cloth, p.skirt, None if p.skirt is None else q.garments.skirt_colours) for p, q in zip(people, rigs)]
+            if self.cfg.garments.enabled else None,
         )  # fmt: skip
         if composite:
             self._composite_backdrop(r, frame, camera, cam_info, back, outline, rng)
         labels = lab.person_labels(
             frame, camera,
             [{"vertices": p.vertices, "outline": p.outline, "faces": q.faces, "face_bones": q.face_bones,
-              "keypoints": p.keypoints, **self._hair_labels(p)} for p, q in zip(people, rigs)],
+              "keypoints": p.keypoints, **self._hair_labels(p), **_cloth_labels(p)} for p, q in zip(people, rigs)],
             self.bone_to_part, self.regions, self.is_joint,
         )  # fmt: skip
         if labels["unassigned"]:
@@ -569,6 +604,7 @@ class SampleMaker:
             "pipeline": self.cfg.pipeline,
             "motion": p.motion,
             **({"hair": p.rig.hair_spec.to_json()} if p.hair is not None else {}),
+            **({"garments": p.rig.garment_spec.to_json()} if p.cloth is not None else {}),
             "blsm": {
                 "pose": _l(x), "angles": _l(p.angles), "bone": _l(p.bone), "shape": _l(p.shape),
                 "global_orient": _l(p.global_orient), "transl": _l(p.transl),
@@ -583,6 +619,25 @@ class SampleMaker:
             "box_full": None if lp["box_full"] is None else _l(lp["box_full"]),
             "pixels": lp["pixels"],
         }  # fmt: skip
+
+
+def _cloth_labels(p: Person) -> dict[str, Any]:
+    """Person ``p``'s clothes for :func:`synth.labels.person_labels` (nothing without garments)."""
+    if p.cloth is None:
+        return {}
+    from synth.garments import skirt_faces
+
+    g = p.rig.garments
+    out: dict[str, Any] = {"cloth_vertices": p.cloth}
+    if p.skirt is not None:
+        out.update(skirt_vertices=p.skirt, skirt_faces=skirt_faces(), skirt_face_bones=_skirt_face_bones(g))
+    return out
+
+
+def _skirt_face_bones(g: Any) -> np.ndarray:
+    from synth.garments import skirt_faces
+
+    return g.skirt_weights[skirt_faces()].sum(1).argmax(1)
 
 
 def _l(a: Any) -> Any:

@@ -578,14 +578,17 @@ def anny_subject(
         reg_verts, _, out = registration_output(model, reg)
     outfit = textures.sample_outfit(rng)
     bones = paint_weights(verts, reg_verts.numpy(), model.weights.numpy(), faces, model.faces.numpy()).argmax(1)
+    cuts: dict[str, float] = {}
     texture = textures.make_albedo(
-        uv, faces_uv, verts, faces, bones, list(model.bone_names), out.joints[0].numpy(), outfit, rng, texture_size
+        uv, faces_uv, verts, faces, bones, list(model.bone_names), out.joints[0].numpy(), outfit, rng, texture_size,
+        cuts_out=cuts,
     )
     meta = {
         "source": "anny",
         "anny_version": getattr(__import__("anny"), "__version__", "?"),
         "phenotype": pheno,
         "outfit": outfit.to_json(),
+        "outfit_cuts": cuts,  # the painted garments' borders (synth.garments cuts its cloth there)
         "registration": fit,
         "height_m": float(verts[:, 1].max() - verts[:, 1].min()),
     }

@@ -25,12 +25,16 @@ convention, which Mitsuba's ``obj`` loader reads as is; with ``ply`` or ``mi.Mes
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
 
 from blsm.color import linear_to_srgb, srgb_to_linear
 from synth.raster import rasterise_uv, uv_triangles
+
+if TYPE_CHECKING:
+    from synth.skin_detail import SkinDetail
 
 TOPS = ("tshirt", "longsleeve", "tank")
 BOTTOMS = ("trousers", "shorts", "skirt", "capris")
@@ -105,11 +109,23 @@ class Outfit:
             raise ValueError(f"outfit patterns must map top, bottoms, shoes to {PATTERNS}: {self.patterns}")
 
     def to_json(self) -> dict:
-        """A plain JSON-able dict (colours as lists of 3 floats)."""
+        """A plain JSON-able dict (colours as lists of 3 floats; :func:`outfit_from_json` reads it)."""
         out = {k: getattr(self, k) for k in ("top", "bottoms", "shoes")}
         out.update(skin=list(self.skin), hair=list(self.hair), patterns=dict(self.patterns))
         out["colors"] = {k: list(v) for k, v in self.colors.items()}
         return out
+
+
+def outfit_from_json(d: dict) -> Outfit:
+    """The :class:`Outfit` of :meth:`Outfit.to_json` (a subject's ``meta["outfit"]``)."""
+    try:
+        return Outfit(
+            skin=_rgb(np.asarray(d["skin"])), top=str(d["top"]), bottoms=str(d["bottoms"]), shoes=str(d["shoes"]),
+            colors={k: _rgb(np.asarray(v)) for k, v in d["colors"].items()}, patterns=dict(d["patterns"]),
+            hair=_rgb(np.asarray(d["hair"])),
+        )  # fmt: skip
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"outfit lacks or mistypes {exc}") from None
 
 
 def _garment_colour(rng: np.random.Generator, palette: str, p_random: float) -> np.ndarray:
@@ -165,7 +181,7 @@ def sample_outfit(rng: np.random.Generator) -> Outfit:
     return Outfit(_rgb(skin), top, bottoms, shoes, colors, patterns, _rgb(hair))
 
 
-def _noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:
+def value_noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:
     """Trilinear value noise in [0, 1] of points p (N, 3) on the unit lattice."""
     i = np.floor(p)
     f = p - i
@@ -209,6 +225,8 @@ def make_albedo(
     outfit: Outfit,
     rng: np.random.Generator,
     size: int = 1024,
+    cuts_out: dict[str, float] | None = None,
+    detail: SkinDetail | None = None,
 ) -> np.ndarray:
     """Paint an outfit into an albedo texture (see the module docstring for the method).
 
@@ -223,6 +241,9 @@ def make_albedo(
         outfit: what to paint (:func:`sample_outfit`).
         rng: random generator for hem heights, pattern scales and noise.
         size: texture width and height in texels (at least 8).
+        cuts_out: a dict that receives the drawn borders (:func:`draw_cuts`), or None.
+        detail: a :class:`synth.skin_detail.SkinDetail` to paint over the skin (face features, skin
+            and hand detail; it does not draw from ``rng``), or None for none.
 
     Returns:
         (size, size, 3) uint8 sRGB albedo; row 0 is the top of the image (v = 1).
@@ -234,8 +255,15 @@ def make_albedo(
     uv, faces_uv, vertices, faces, vertex_bones, joints = _checked_albedo_inputs(
         uv, faces_uv, vertices, faces, vertex_bones, bone_names, joints, size)
     body = _Texels.of(uv, faces_uv, vertices, faces, vertex_bones, bone_names, joints, int(size))
-    label = _garment_labels(body, outfit, rng)
+    cuts = draw_cuts(outfit, rng)
+    if cuts_out is not None:
+        cuts_out.update(cuts)
+    label = _garment_labels(body, outfit, cuts)
     colour = _garment_colours(body, label, outfit, rng)
+    if detail is not None:
+        from synth.skin_detail import paint_detail
+
+        colour = paint_detail(body, faces, label, colour, outfit, detail)
     # Step 1's fill: every texel outside the charts copies its nearest covered texel.
     img = np.zeros((size * size, 3))
     img[body.texels] = colour
@@ -320,6 +348,17 @@ class _Texels:
         part = np.take_along_axis(cp, same.argmax(1)[:, None], 1)[:, 0]
         return _Texels(texels, face, bary, corners, p, texel_m, vn, part, vertices, vertex_bones, bone_names, j)
 
+    @staticmethod
+    def at_vertices(vertices, vertex_bones, bone_names, joints) -> _Texels:
+        """The mesh's vertices as points of step 2 (each vertex's part is its bone's)."""
+        part_of_bone = np.full(len(bone_names), -1)
+        for q, bones in enumerate(PARTS):
+            part_of_bone[[bone_names.index(b) for b in bones]] = q
+        n, e = len(vertices), np.zeros(0)
+        j = {name: joints[i] for i, name in enumerate(bone_names)}
+        return _Texels(np.arange(n), e, e, e, vertices, e, e, part_of_bone[vertex_bones], vertices, vertex_bones,
+                       bone_names, j)  # fmt: skip
+
     def along(self, a: str, b: str, m: np.ndarray) -> np.ndarray:
         """Fraction along joint ``a`` -> ``b`` (``_l`` or ``_r`` by side) of the limb texels ``m``."""
         left = (self.part == 3) | (self.part == 5)
@@ -339,8 +378,34 @@ class _Texels:
         return (self.j["head"][1] - self.j["ankle_l"][1]) / 1.4
 
 
-def _garment_labels(body: _Texels, outfit: Outfit, rng: np.random.Generator) -> np.ndarray:
-    """Step 2 of the module docstring: per texel 0 skin, 1 top, 2 bottoms, 3 shoes, 4 soles, 5 hair."""
+def draw_cuts(outfit: Outfit, rng: np.random.Generator) -> dict[str, float]:
+    """The random borders of step 2 (hem heights, waist, neckline, sleeve lengths, armholes,
+    hairline) as fractions of body measures, drawn in :func:`make_albedo`'s order. Stored with the
+    subject (``meta["outfit_cuts"]``) so that :mod:`synth.garments` cuts its cloth where the paint
+    changes colour (:func:`vertex_labels`)."""
+    c: dict[str, float] = {}
+    if outfit.shoes == "shoes":
+        c["shoe_line"], c["shoe_toe"] = rng.uniform(-0.005, 0.045), rng.uniform(-0.12, 0.03)
+        c["sole"] = rng.uniform(0.008, 0.025)
+    c["waist"] = rng.uniform(0.5, 1.8)
+    lo, hi = HEMS[outfit.bottoms][2:]
+    c["leg_hem"] = rng.uniform(lo, hi)
+    lo, hi = (-1.0, -0.3) if outfit.top == "tank" else (-0.3, 0.2)
+    c["neck_front"], c["neck_back"] = rng.uniform(lo, hi), rng.uniform(0.4, 0.8)
+    c["top_hem"] = rng.uniform(0.0, 1.5)
+    if outfit.top == "tshirt":
+        c["sleeve"] = rng.uniform(0.3, 0.6)
+    elif outfit.top == "longsleeve":
+        c["sleeve"] = rng.uniform(0.9, 1.0)
+    else:
+        c["armhole_x"], c["armhole_y"] = rng.uniform(0.35, 0.55), rng.uniform(1.0, 1.4)
+    c["hairline"] = rng.uniform(-0.35, 0.1)
+    return {k: float(v) for k, v in c.items()}
+
+
+def _garment_labels(body: _Texels, outfit: Outfit, c: dict[str, float]) -> np.ndarray:
+    """Step 2 of the module docstring: per point 0 skin, 1 top, 2 bottoms, 3 shoes, 4 soles, 5 hair,
+    for the borders ``c`` (:func:`draw_cuts`)."""
     j, vertices, unit = body.j, body.vertices, body.unit
     x, y, z = body.p.T
     head, neck, torso = body.part == 0, body.part == 1, body.part == 2
@@ -349,33 +414,28 @@ def _garment_labels(body: _Texels, outfit: Outfit, rng: np.random.Generator) -> 
     label = np.zeros(len(body.p), np.int64)
     if outfit.shoes == "shoes":  # the foot below a line near the ankle joint (lower at the toes)
         ank = np.where(left[:, None], j["ankle_l"], j["ankle_r"])
-        line = (
-            ank[:, 1]
-            + unit * rng.uniform(-0.005, 0.045)
-            + rng.uniform(-0.12, 0.03) * np.maximum(z - ank[:, 2], 0)
-        )
+        line = ank[:, 1] + unit * c["shoe_line"] + c["shoe_toe"] * np.maximum(z - ank[:, 2], 0)
         label[leg & (y < line)] = 3
-        label[leg & (y < vertices[:, 1].min() + unit * rng.uniform(0.008, 0.025))] = 4
+        label[leg & (y < vertices[:, 1].min() + unit * c["sole"])] = 4
     # Bottoms: torso and legs below the waist, down to a hem perpendicular to the thigh or shin.
-    waist = y_pel + rng.uniform(0.5, 1.8) * (y_s1 - y_pel)
-    a, b, lo, hi = HEMS[outfit.bottoms]
-    label[(y < waist) & (torso | (leg & (body.along(a, b, leg) < rng.uniform(lo, hi))))] = 2
+    waist = y_pel + c["waist"] * (y_s1 - y_pel)
+    a, b = HEMS[outfit.bottoms][:2]
+    label[(y < waist) & (torso | (leg & (body.along(a, b, leg) < c["leg_hem"])))] = 2
     # Top: torso (and hips) between the hem and the neckline; sleeves by type.
     nc = body.centre("neck")
     rn = np.hypot(x - nc[0], z - nc[2])
-    lo, hi = (-1.0, -0.3) if outfit.top == "tank" else (-0.3, 0.2)
-    y_front, y_back = y_c + rng.uniform(lo, hi) * (y_n - y_c), y_c + rng.uniform(0.4, 0.8) * (y_n - y_c)
+    y_front, y_back = y_c + c["neck_front"] * (y_n - y_c), y_c + c["neck_back"] * (y_n - y_c)
     front = 0.5 + 0.5 * (z - nc[2]) / np.maximum(rn, 1e-9)  # 1 at the front of the neck, 0 at the back
     neckline = y_back + (y_front - y_back) * front**1.5 + 1.5 * np.maximum(rn - 0.07 * unit, 0)
-    hem = waist - rng.uniform(0.0, 1.5) * (y_s1 - y_pel)
+    hem = waist - c["top_hem"] * (y_s1 - y_pel)
     top = (torso | neck | leg) & (y < np.minimum(neckline, y_n)) & (y > hem)
     if outfit.top == "tshirt":
-        top |= arm & (body.along("shoulder", "elbow", arm) < rng.uniform(0.3, 0.6))
+        top |= arm & (body.along("shoulder", "elbow", arm) < c["sleeve"])
     elif outfit.top == "longsleeve":
-        top |= arm & (body.along("elbow", "wrist", arm) < rng.uniform(0.9, 1.0))
+        top |= arm & (body.along("elbow", "wrist", arm) < c["sleeve"])
     else:  # armholes: straps above the shoulder joint, an elliptic cut-out below it
         xs, ys = j["shoulder_l"][0] - j["pelvis"][0], j["shoulder_l"][1]
-        ax, ay = rng.uniform(0.35, 0.55) * xs, rng.uniform(1.0, 1.4) * (ys - j["spine_03"][1])
+        ax, ay = c["armhole_x"] * xs, c["armhole_y"] * (ys - j["spine_03"][1])
         ex = np.abs(x - j["pelvis"][0])
         top &= ~(((y >= ys) & (ex > xs - ax)) | (((ex - xs) / ax) ** 2 + ((y - ys) / ay) ** 2 < 1))
     label[top] = 1
@@ -383,10 +443,25 @@ def _garment_labels(body: _Texels, outfit: Outfit, rng: np.random.Generator) -> 
     skull = body.centre("head", vertices[:, 1] > j["head"][1])
     h_head = vertices[body.vertex_bones == body.bone_names.index("head"), 1].max() - j["head"][1]
     fh = (z - skull[2]) / np.maximum(np.hypot(x - skull[0], z - skull[2]), 1e-9)  # +1 front, -1 back
-    back = rng.uniform(-0.35, 0.1)
+    back = c["hairline"]
     hairline = j["head"][1] + h_head * (0.45 + (0.72 - back) / 2 * fh + (back - 0.18) / 2 * fh**2)
     label[(head | neck) & (y > hairline)] = 5
     return label
+
+
+def vertex_labels(
+    vertices: np.ndarray, vertex_bones: np.ndarray, bone_names: list[str], joints: np.ndarray, outfit: Outfit,
+    cuts: dict[str, float],
+) -> np.ndarray:
+    """Step 2 at the mesh's vertices instead of its texels: (V,) labels as :func:`make_albedo`
+    painted them (0 skin, 1 top, 2 bottoms, 3 shoes, 4 soles, 5 hair), given the same ``vertices``
+    (the scan's pose), bones, joints, outfit and the stored ``cuts``. A vertex's part is its own
+    bone's (a texel's is the largest interpolated one), so labels can differ from the paint only at
+    part borders."""
+    vertices = np.asarray(vertices, np.float64)
+    vertex_bones = np.asarray(vertex_bones, np.int64)
+    pts = _Texels.at_vertices(vertices, vertex_bones, list(bone_names), np.asarray(joints, np.float64))
+    return _garment_labels(pts, outfit, cuts)
 
 
 def _garment_colours(body: _Texels, label: np.ndarray, outfit: Outfit, rng: np.random.Generator) -> np.ndarray:
@@ -395,7 +470,7 @@ def _garment_colours(body: _Texels, label: np.ndarray, outfit: Outfit, rng: np.r
     table = rng.uniform(size=4096)
     colour = np.empty((len(p), 3))
     m = label == 0
-    low = 0.5 * _noise(p[m] / 0.12, table) + 0.5 * _noise(p[m] / 0.05 + 7.3, table)
+    low = 0.5 * value_noise(p[m] / 0.12, table) + 0.5 * value_noise(p[m] / 0.05 + 7.3, table)
     colour[m] = np.asarray(outfit.skin) * (1 + 0.06 * (low - 0.5))[:, None]
     for lab, name in ((1, "top"), (2, "bottoms"), (3, "shoes"), (5, "hair")):
         if not (m := label == lab).any():
@@ -405,7 +480,7 @@ def _garment_colours(body: _Texels, label: np.ndarray, outfit: Outfit, rng: np.r
         alt = np.asarray(outfit.colors.get(name + "_alt", base))
         period = rng.uniform(0.015, 0.06) * body.unit
         q, w = p[m] + rng.uniform(0, period, 3), body.texel_m[m] / period
-        grain = _noise(q / 0.004 * np.array([1, 0.3, 1]), table) + _noise(q / 0.02, table[::-1].copy())
+        grain = value_noise(q / 0.004 * np.array([1, 0.3, 1]), table) + value_noise(q / 0.02, table[::-1].copy())
         mix = np.zeros(len(q))
         if pat == "stripes":
             mix = _pulse(q[:, 1] / period, rng.uniform(0.2, 0.5), w)

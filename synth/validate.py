@@ -17,12 +17,16 @@ Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLS
 - the mask matches the projected mesh: the union of the people's projected triangles, tested at
   pixel centres, equals the foreground mask up to ``EDGE_PIXELS`` pixels on triangle edges;
 - every mask pixel's correspondence (face, barycentric) on the rebuilt mesh (the body, then its hair
-  rebuilt from the sample's ``hair`` spec, :mod:`synth.hair`) projects to the pixel's centre, up to
+  rebuilt from the sample's ``hair`` spec, :mod:`synth.hair`, then its clothes rebuilt from the
+  ``garments`` spec, :mod:`synth.garments`: the cloth layer and the skirt) projects to the pixel's centre, up to
   what the labels' single precision, the rebuild from rounded parameters and the rounding of ``K``,
   ``R``, ``t`` allow (per pixel, :func:`synth.format.correspondence_tolerance`: 1.4e-3 px for a
   surface facing a 600 mm lens 60 m away in a 128 px image, more where the surface is seen edge-on),
   at the stored depth (``DEPTH_M``) (:func:`check_correspondences`); parts and bones agree with the
-  mask.
+  mask;
+- clothes: the labels are the body's (keypoints rebuilt from the body alone), the mask is the
+  projection of body, hair and clothes, and a pixel on the cloth layer has the bone of the body face
+  under it (:func:`check_cloth_bones`).
 """
 
 from __future__ import annotations
@@ -73,6 +77,8 @@ class MeshRebuilder:
         self.model = blsm.load()
         self.subjects: dict[str, Any] = {}
         self.hair: dict[tuple, Any] = {}
+        self.garments: dict[tuple, Any] = {}
+        self.cloth: tuple[int, np.ndarray] | None = None  # the last person's (first layer face, body face bones)
         self.dataset = dataset
         self.regions: dict[tuple, dict[str, np.ndarray]] = {}  # a sequence person's contact regions
         self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
@@ -99,8 +105,16 @@ class MeshRebuilder:
             if key not in self.hair:
                 self.hair[key] = subject_hair(s, self.model, HairSpec.from_json(person["hair"]), pipe)
             hair = self.hair[key]
+        garments = None
+        if person.get("garments") is not None:  # the clothes follow the hair's faces (synth.labels)
+            from synth.garments import GarmentSpec, subject_garments
+
+            key = (sid, json.dumps(person["garments"], sort_keys=True))
+            if key not in self.garments:
+                self.garments[key] = subject_garments(s, self.model, GarmentSpec.from_json(person["garments"]))
+            garments = (self.garments[key], s.weights)
         p = pose_person(s, self.model, pipe, params["pose"], params["global_orient"], params["transl"],
-                        self.parents, hair)  # fmt: skip
+                        self.parents, hair, garments)  # fmt: skip
         v, f, kp = p.vertices, p.faces, p.keypoints
         self.bones = p.vertex_bones  # the body's, for a sequence's contact regions
         if pipe == "raw":  # the scan as captured, moved to its place in the image
@@ -111,6 +125,15 @@ class MeshRebuilder:
 
             f = np.concatenate([f, hair_faces() + len(v)])
             v = np.concatenate([v, p.hair])
+        self.cloth = None
+        if p.cloth is not None:
+            from synth.garments import skirt_faces
+            from synth.labels import face_bones
+
+            self.cloth = (len(f), face_bones(p.faces, s.weights))
+            f, v = np.concatenate([f, p.faces + len(v)]), np.concatenate([v, p.cloth])
+            if p.skirt is not None:
+                f, v = np.concatenate([f, skirt_faces() + len(v)]), np.concatenate([v, p.skirt])
         return v.astype(np.float64), f, kp
 
 
@@ -239,6 +262,16 @@ def check_correspondences(
     return out
 
 
+def check_cloth_bones(corr: np.ndarray, bones: np.ndarray, sel: np.ndarray, first: int, body_bones: np.ndarray) -> list[str]:
+    """A person's pixels ``sel`` on its cloth layer (correspondence faces ``first`` to ``first + F``)
+    must carry the bone of the body face under them (layer face ``f`` lies over body face ``f``)."""
+    f = corr[..., 0][sel].astype(np.int64)
+    on = (f >= first) & (f < first + len(body_bones))
+    want = body_bones[f[on] - first] + 1
+    bad = int((bones[sel][on] != want).sum())
+    return [f"{bad} cloth pixels do not carry the bone of the body under them"] if bad else []
+
+
 def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, bone_to_part: np.ndarray,
                   rep: Report) -> dict[str, Any] | None:
     """Check one sample (module docstring); return its labels (None when they cannot be read)."""
@@ -300,6 +333,9 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
         if (vc[:, 2] <= 1e-3).any():
             continue  # a mesh crossing the camera plane cannot be projected as triangles
         union |= coverage(cam.project(verts), faces, w, h)
+        if rebuild.cloth is not None:
+            for msg in check_cloth_bones(corr, s["bones"], sel, *rebuild.cloth):
+                rep.fail(pw, msg)
         for msg in check_correspondences(cam, verts, faces, corr, depth, sel):
             rep.fail(pw, msg)
     diff = int((union ^ fg).sum())
