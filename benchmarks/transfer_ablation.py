@@ -38,6 +38,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "recipe": ("recipe: backbone at 0.1x the rate, frozen BatchNorm statistics", ("base",), "recipe"),
     "combined": ("every lever: backplates, effects, close-ups, recipe", ("plates",), "combined"),
     "garments": ("clothing geometry: garments as meshes over the body (synth.garments)", ("garments",), "garments"),
+    "occluders": ("occlusion: objects in front of the people in the scene (synth.occluders)", ("occluders",), "occluders"),
 }
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 

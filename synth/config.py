@@ -71,7 +71,12 @@ class SubjectsConfig:
     Anny's people are adults aged uniformly in ``age`` (years) or, with probability ``children``,
     children aged uniformly in ``child_age`` (:class:`synth.subjects.Population`). The default --
     adults 18-80, 10 % children of 5-17 -- holds no infant; ``age: [0, 90], children: 0`` is Anny's
-    own population (all ages, infants included), which the generator used before these keys."""
+    own population (all ages, infants included), which the generator used before these keys.
+
+    ``detail`` (off by default; Anny only) paints face, skin and hand detail into each person's
+    texture (:mod:`synth.skin_detail`: eyes in eyeballs that close Anny's empty sockets, eyebrows,
+    lips, flush, stubble or beards for some men, pores, freckles, moles, knuckles, palms, nails),
+    drawn from a random stream of its own: off, subjects are the same as without this key."""
 
     source: str = "anny"
     count: int = 8
@@ -80,10 +85,15 @@ class SubjectsConfig:
     age: tuple[float, float] = (18.0, 80.0)
     children: float = 0.1
     child_age: tuple[float, float] = (5.0, 17.0)
+    detail: bool = False
 
     def __post_init__(self) -> None:
         if self.source not in ("anny", "folder"):
             raise ValueError(f"subjects.source must be anny or folder, got {self.source!r}")
+        if not isinstance(self.detail, bool):
+            raise ValueError(f"subjects.detail must be true or false, got {self.detail!r}")
+        if self.detail and self.source != "anny":
+            raise ValueError("subjects.detail applies to source: anny only (scans keep their own textures)")
         if self.source == "folder" and not self.folder:
             raise ValueError("subjects.folder is needed with source: folder")
         if self.count < 1:
@@ -345,6 +355,24 @@ class GarmentsConfig:
 
 
 @dataclass(frozen=True)
+class OccludersConfig:
+    """Objects in front of the people (:mod:`synth.occluders`; off by default): with probability
+    ``prob`` a sample gets 1 to ``max`` boxes and cylinders on the ground between the camera and its
+    people. Pixels they cover belong to no person; keypoints behind them are not visible. Single
+    images only (not with ``sequence``)."""
+
+    enabled: bool = False
+    prob: float = 0.5
+    max: int = 2
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.prob <= 1.0:
+            raise ValueError(f"occluders.prob must be a probability in [0, 1], got {self.prob}")
+        if not 1 <= self.max <= 4:
+            raise ValueError(f"occluders.max must be in [1, 4], got {self.max}")
+
+
+@dataclass(frozen=True)
 class CameraPaths:
     """Relative weights of the camera paths of a sequence (:mod:`synth.camera_paths`; 0 leaves a
     path out) and their parameters, each drawn uniformly per sequence from its ``[low, high]``."""
@@ -474,6 +502,7 @@ class GeneratorConfig:
     ground: GroundConfig = field(default_factory=GroundConfig)
     hair: HairConfig = field(default_factory=HairConfig)
     garments: GarmentsConfig = field(default_factory=GarmentsConfig)
+    occluders: OccludersConfig = field(default_factory=OccludersConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
     engine: EngineConfig = field(default_factory=EngineConfig)
     sequence: SequenceConfig = field(default_factory=SequenceConfig)
@@ -492,6 +521,8 @@ class GeneratorConfig:
         if self.garments.enabled and (self.pipeline != "rigged" or self.subjects.source != "anny"):
             raise ValueError("garments.enabled needs pipeline: rigged and subjects.source: anny (the painted outfits)")
         if self.sequence.enabled:
+            if self.occluders.enabled:
+                raise ValueError("occluders.enabled applies to single images, not to sequence.enabled")
             if self.poses.source != "library":
                 raise ValueError("sequence.enabled needs poses.source: library (each person plays a motion clip)")
             if self.pipeline == "raw":

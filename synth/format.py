@@ -22,7 +22,10 @@ Every sample (key ``f"{index:09d}"``) has these members, all made by one render 
                     coordinates of the hit point on it (``b0 = 1 - b1 - b2`` for the face's first
                     vertex). A person with hair has the body's ``F`` faces followed by the hair's
                     (:mod:`synth.hair`): a face index ``>= F`` is hair, which has no point of the
-                    body surface under it.
+                    body surface under it. A person with clothes (``garments``) has then ``F``
+                    faces of the cloth layer (face ``F + Fh + f`` lies over body face ``f``,
+                    ``Fh`` the hair's faces or 0) and the skirt's (``>= 2F + Fh``;
+                    :mod:`synth.garments`).
 ==================  =============================================================================
 
 Every label pixel is the first hit of the ray through the pixel centre ``(u + 0.5, v + 0.5)``: the
@@ -39,7 +42,9 @@ The JSON (``format`` "blsm-synth-sample", ``version`` 1) holds:
 - ``keypoint_names`` (the model's keypoints), ``bone_names``, ``part_names``;
 - ``people``: one entry per person, in mask order:
   ``subject`` (id in ``subjects/``), ``pipeline`` (rigged, raw or blsm), ``motion`` (source, clip,
-  frame), ``hair`` (only with hair: the :class:`synth.hair.HairSpec` it was grown from), ``blsm`` (``pose`` 47 unconstrained values x of Eq. 6, ``angles`` 47 radians, ``bone``,
+  frame), ``hair`` (only with hair: the :class:`synth.hair.HairSpec` it was grown from),
+  ``garments`` (only with clothing geometry: the :class:`synth.garments.GarmentSpec`; every other
+  label stays the body's underneath), ``blsm`` (``pose`` 47 unconstrained values x of Eq. 6, ``angles`` 47 radians, ``bone``,
   ``shape``, ``global_orient`` axis-angle, ``transl`` metres), ``bone_lengths`` (metres, per bone),
   ``keypoints_3d`` (K, 3) world metres, ``keypoints_3d_cam`` (K, 3) camera metres,
   ``keypoints_2d`` (K, 2) pixels, ``visible`` (K) whether the ray through the keypoint's pixel first

@@ -143,6 +143,7 @@ def person_labels(
     bone_to_part: np.ndarray,
     regions: list[set[int]],
     keypoint_is_joint: np.ndarray,
+    occluders: list[tuple[np.ndarray, np.ndarray]] = (),
 ) -> dict:
     """All label images and per-person keypoint/box labels of one frame.
 
@@ -164,6 +165,9 @@ def person_labels(
         bone_to_part: (J,) part index per bone.
         regions: per keypoint, the bones that may show it.
         keypoint_is_joint: (K,) bool.
+        occluders: (vertices, faces) of objects in the scene that belong to no person
+            (:mod:`synth.occluders`): their pixels are background in every label, and a keypoint
+            whose pixel shows one is not visible.
 
     Returns:
         ``mask``, ``parts``, ``bones`` (H, W) uint8; ``depth`` (H, W) float32; ``corr`` (H, W, 3)
@@ -173,11 +177,16 @@ def person_labels(
     """
     h, w = frame.hit.shape
     entries, owner, offset, face_bones, is_hair = _hit_meshes(people)
+    entries += list(occluders)
+    owner += [-1] * len(occluders)
+    offset += [0] * len(occluders)
     entry, bary = assign_hits(frame, entries)
-    hit = entry >= 0
+    assigned = entry >= 0
     e = np.maximum(entry, 0)
-    person = np.where(hit, np.asarray(owner)[e], -1)
-    on_hair = hit & np.asarray(is_hair)[e]
+    person = np.where(assigned, np.asarray(owner)[e], -1)
+    hit = person >= 0  # a person's pixel (an occluder's is background)
+    entry = np.where(hit, entry, -1)
+    on_hair = hit & np.asarray(is_hair + [False] * len(occluders))[e]
     face = np.where(hit, frame.face + np.asarray(offset)[e], -1)
     mask = np.where(hit, person + 1, 0).astype(np.uint8)
     bones = np.zeros((h, w), np.uint8)
@@ -242,7 +251,7 @@ def person_labels(
                 "pixels": int(sel.sum()),
             }
         )
-    unassigned = int((frame.hit & ~hit).sum())
+    unassigned = int((frame.hit & ~assigned).sum())
     return {
         "mask": mask,
         "parts": parts,

@@ -87,8 +87,9 @@ def _hair_bsdf(variant: str) -> Any:
 
 @functools.lru_cache(maxsize=None)
 def _skirt_bsdf(variant: str) -> Any:
-    """The skirts' BSDF (:mod:`synth.garments`), one per process and variant like the hair's: a
-    two-sided diffuse cloth (its inside shows under the hem), colour per vertex."""
+    """The skirts' and occluders' BSDF (:mod:`synth.garments`, :mod:`synth.occluders`), one per
+    process and variant like the hair's: two-sided diffuse (a skirt's inside shows under the hem),
+    colour per vertex."""
     mi = load_mitsuba(variant)
     return mi.load_dict({"type": "twosided", "bsdf": {
         "type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}})  # fmt: skip
@@ -224,6 +225,7 @@ class PeopleRenderer:
         sampler: str = "independent",
         denoise_quality: str = "high",
         garments: bool = False,
+        occluders: int = 0,
     ) -> None:
         """Load the scene.
 
@@ -240,6 +242,8 @@ class PeopleRenderer:
             garments: every person slot also holds a cloth layer (the person's topology, texture
                 and BSDF: one BSDF object for both) and a skirt (:mod:`synth.garments`; the same
                 topology for all; hidden where a person has none).
+            occluders: slots for objects in front of the people (:mod:`synth.occluders`), each a
+                box and a cylinder mesh (one shown, or none), colour per vertex.
             sampler: the path tracer's Mitsuba sampler (``independent``, or a stratified,
                 multi-jittered or low-discrepancy one: less noise at the same samples per pixel).
         """
@@ -251,6 +255,7 @@ class PeopleRenderer:
         self.backplate = backplate
         self.hair = hair
         self.garments = garments
+        self.occluders = occluders
         self.denoiser = None
         if denoise:
             from synth.denoise import shared_denoiser
@@ -271,6 +276,12 @@ class PeopleRenderer:
                 scene[f"instance_{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{i}"}}
             else:
                 scene.update(shapes)
+        for k in range(occluders):
+            from synth.occluders import KINDS, occluder_faces, occluder_vertex_count
+
+            for kind in KINDS:
+                scene[f"occl_{kind}_{k}"] = self._coloured_mesh(f"occl_{kind}_{k}", occluder_vertex_count(kind),
+                                                                occluder_faces(kind), _skirt_bsdf(self.variant))  # fmt: skip
         mi = self.mi
         self.scene = mi.load_dict(scene)
         self.params = mi.traverse(self.scene)
@@ -374,9 +385,10 @@ class PeopleRenderer:
             self._collapse(i, name)
         self._hidden.add(i)
 
-    def _collapse(self, i: int, name: str) -> None:
+    def _collapse(self, i: int | None, name: str) -> None:
+        """Collapse mesh ``name`` (of person slot ``i``, or of the scene itself with None)."""
         mi, p = self.mi, self.params
-        key = f"group_{i}.{name}" if self.instanced else name
+        key = f"group_{i}.{name}" if self.instanced and i is not None else name
         nv = len(p[f"{key}.vertex_positions"]) // 3
         p[f"{key}.vertex_positions"] = mi.Float(np.tile(np.array(HIDDEN_POINT, np.float32), nv))
         p[f"{key}.vertex_normals"] = mi.Float(np.tile(np.array([0.0, 1.0, 0.0], np.float32), nv))
@@ -406,6 +418,24 @@ class PeopleRenderer:
         p[f"{key}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals).reshape(-1))
         p[f"{key}.vertex_color"] = mi.Float(np.ascontiguousarray(colours, dtype=np.float32).reshape(-1))
 
+    def _assign_occluders(self, occluders) -> None:
+        from synth.occluders import KINDS, occluder_faces
+
+        mi, p = self.mi, self.params
+        for k in range(self.occluders):
+            shown = occluders[k][0] if k < len(occluders) else None
+            for kind in KINDS:
+                if kind != shown:
+                    self._collapse(None, f"occl_{kind}_{k}")
+                    continue
+                _, v, colours = occluders[k]
+                normals = vertex_normals(np.asarray(v, np.float32), occluder_faces(kind).astype(np.int64))
+                p[f"occl_{kind}_{k}.vertex_positions"] = mi.Float(np.ascontiguousarray(v, dtype=np.float32).reshape(-1))
+                p[f"occl_{kind}_{k}.vertex_normals"] = mi.Float(np.ascontiguousarray(normals, dtype=np.float32).reshape(-1))
+                p[f"occl_{kind}_{k}.vertex_color"] = mi.Float(np.ascontiguousarray(colours, dtype=np.float32).reshape(-1))
+        if self.occluders:
+            p.update()
+
     def _hair_incidence(self) -> Any:
         if self._hair_inc is None:
             from synth.hair import hair_faces, num_vertices
@@ -427,6 +457,7 @@ class PeopleRenderer:
         hair: list[tuple[np.ndarray, np.ndarray]] | None = None,
         window: tuple[int, int, int, int] | None = None,
         clothes: list[tuple[np.ndarray, np.ndarray | None, np.ndarray | None]] | None = None,
+        occluders: list[tuple[str, np.ndarray, np.ndarray]] = (),
     ) -> Frame:
         """Render one frame.
 
@@ -456,6 +487,9 @@ class PeopleRenderer:
             clothes: per person, the posed cloth layer's (V, 3) vertices (the person's topology)
                 and the posed skirt's (S, 3) vertices and (S, 3) linear colours, or None, None
                 without a skirt (the renderer must have been built with ``garments=True``).
+            occluders: per object, its kind, (V, 3) world vertices and (V, 3) linear colours
+                (:func:`synth.occluders.occluder_mesh`), at most the renderer's ``occluders``
+                slots. A hit on an occluder is reported by its face index like any other.
         """
         mi = self.mi
         if (camera.width, camera.height) != (self.width, self.height):
@@ -467,6 +501,8 @@ class PeopleRenderer:
             raise ValueError(f"this renderer {'needs' if self.hair else 'has no'} a hair per person")
         if (clothes is not None) != self.garments or (clothes is not None and len(clothes) != n):
             raise ValueError(f"this renderer {'needs' if self.garments else 'has no'} clothes per person")
+        if len(occluders) > self.occluders:
+            raise ValueError(f"this renderer has {self.occluders} occluder slots, got {len(occluders)} occluders")
         full = (0, 0, self.width, self.height)
         window = full if window is None else tuple(int(w) for w in window)
         x0, y0, ww, wh = window
@@ -485,6 +521,7 @@ class PeopleRenderer:
                 self._textures.clear()  # both warm-up assignments upload everything
                 self._env = None
             self._assign(vertices, textures, camera, env, env_rotation, env_scale, hair, clothes)
+            self._assign_occluders(occluders)
         self._warm = True
         sensors = self.scene.sensors()
         image = trace_window(mi, self.scene, sensors[0], self.scene.integrator(), window, spp, seed)

@@ -437,6 +437,7 @@ class SampleMaker:
                 denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
                 sampler=self.cfg.render.sampler, denoise_quality=self.cfg.render.denoise_quality,
                 garments=self.cfg.garments.enabled,
+                occluders=self.cfg.occluders.max if self.cfg.occluders.enabled else 0,
             )  # fmt: skip
             self._renderers[key] = r
         return r
@@ -454,8 +455,15 @@ class SampleMaker:
         outline = np.concatenate([p.outline for p in people])  # every person's hull vertices
         camera, cam_info = sample_camera(outline, cfg.camera, rng)
         back = self.background(rng, camera)
-        frame, labels = self.render_frame(index, people, camera, cam_info, back, rng)
-        return self.encode(index, camera, cam_info, back, people, frame, labels)
+        occluders, extra = [], None
+        if cfg.occluders.enabled:
+            from synth.occluders import place_occluders
+
+            o = cfg.occluders
+            occluders = place_occluders([footprint(p.outline) for p in people], camera, o.prob, o.max, cfg.people.gap, rng)
+            extra = {"occluders": [q.to_json() for q in occluders]}
+        frame, labels = self.render_frame(index, people, camera, cam_info, back, rng, occluders)
+        return self.encode(index, camera, cam_info, back, people, frame, labels, extra)
 
     def draw_person(self, rng: np.random.Generator) -> Person:
         """A subject drawn and posed by the pose source (at the origin, before placement)."""
@@ -479,10 +487,16 @@ class SampleMaker:
         return p
 
     def render_frame(self, index: int, people: list[Person], camera: Any, cam_info: dict, back: bg.Background,
-                     rng: np.random.Generator) -> tuple[Any, dict[str, Any]]:
-        """Render the placed ``people`` (each with its ``outline``) and make their labels."""
+                     rng: np.random.Generator, occluders: list[Any] = ()) -> tuple[Any, dict[str, Any]]:
+        """Render the placed ``people`` (each with its ``outline``) and the ``occluders``
+        (:class:`synth.occluders.Occluder`) in front of them, and make their labels."""
         cfg = self.cfg
-        outline = np.concatenate([p.outline for p in people])
+        occ = []
+        if occluders:
+            from synth.occluders import occluder_mesh
+
+            occ = [(o.kind, *occluder_mesh(o)) for o in occluders]  # (kind, vertices, faces, colours)
+        outline = np.concatenate([p.outline for p in people] + [v.astype(np.float32) for _, v, _, _ in occ])
         rigs = [p.rig for p in people]
         # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
         # a backplate) and the backdrop is composited after the render: darkened by the people's
@@ -498,6 +512,7 @@ class SampleMaker:
             people_window(camera, outline) if composite and self.windowed else None,
             [(p.cloth, p.skirt, None if p.skirt is None else q.garments.skirt_colours) for p, q in zip(people, rigs)]
             if self.cfg.garments.enabled else None,
+            [(k, v, c) for k, v, _, c in occ],
         )  # fmt: skip
         if composite:
             self._composite_backdrop(r, frame, camera, cam_info, back, outline, rng)
@@ -505,7 +520,7 @@ class SampleMaker:
             frame, camera,
             [{"vertices": p.vertices, "outline": p.outline, "faces": q.faces, "face_bones": q.face_bones,
               "keypoints": p.keypoints, **self._hair_labels(p), **_cloth_labels(p)} for p, q in zip(people, rigs)],
-            self.bone_to_part, self.regions, self.is_joint,
+            self.bone_to_part, self.regions, self.is_joint, [(v, f) for _, v, f, _ in occ],
         )  # fmt: skip
         if labels["unassigned"]:
             raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")

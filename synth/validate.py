@@ -14,7 +14,9 @@ Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLS
   stored ones;
 - visible keypoints are in frame and lie inside their person's mask;
 - ``box`` is the bounding box of the person's mask and holds its visible keypoints;
-- the mask matches the projected mesh: the union of the people's projected triangles, tested at
+- the mask matches the projected mesh: the union of the people's projected triangles (less the
+  pixels an occluder of the sample's ``occluders`` covers, :mod:`synth.occluders`, where a person
+  may be hidden), tested at
   pixel centres, equals the foreground mask up to ``EDGE_PIXELS`` pixels on triangle edges;
 - every mask pixel's correspondence (face, barycentric) on the rebuilt mesh (the body, then its hair
   rebuilt from the sample's ``hair`` spec, :mod:`synth.hair`, then its clothes rebuilt from the
@@ -262,6 +264,20 @@ def check_correspondences(
     return out
 
 
+def occluder_coverage(occluders: list[dict[str, Any]], cam: Camera, w: int, h: int) -> np.ndarray:
+    """(H, W) bool: pixel centres inside the projection of the sample's occluders (their parts in
+    front of the camera; an occluder crossing the camera plane covers every pixel it may)."""
+    from synth.occluders import Occluder, occluder_mesh
+
+    out = np.zeros((h, w), bool)
+    for d in occluders:
+        v, f, _ = occluder_mesh(Occluder.from_json(d))
+        if (v @ cam.R.T + cam.t)[:, 2].min() <= 1e-3:
+            return np.ones((h, w), bool)
+        out |= coverage(cam.project(v), f, w, h)
+    return out
+
+
 def check_cloth_bones(corr: np.ndarray, bones: np.ndarray, sel: np.ndarray, first: int, body_bones: np.ndarray) -> list[str]:
     """A person's pixels ``sel`` on its cloth layer (correspondence faces ``first`` to ``first + F``)
     must carry the bone of the body face under them (layer face ``f`` lies over body face ``f``)."""
@@ -338,7 +354,8 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
                 rep.fail(pw, msg)
         for msg in check_correspondences(cam, verts, faces, corr, depth, sel):
             rep.fail(pw, msg)
-    diff = int((union ^ fg).sum())
+    hidden = occluder_coverage(doc.get("occluders") or [], cam, w, h)
+    diff = int(((union ^ fg) & ~(union & hidden)).sum())
     if diff > max(2, EDGE_PIXELS * fg.sum()):
         rep.fail(where, f"the mask differs from the projected meshes in {diff} of {int(fg.sum())} pixels")
     return doc
