@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -87,7 +87,7 @@ class Occluder:
             raise ValueError(f"occluder lacks or mistypes {exc}") from None
 
 
-@lru_cache(maxsize=None)
+@cache
 def _unit_mesh(kind: str) -> tuple[np.ndarray, np.ndarray]:
     """A unit box ([-0.5, 0.5] in x and z, [0, 1] in y; 4 vertices per side for flat normals) or a
     unit cylinder (radius 1, height 1; sides and caps apart), and their outward faces."""

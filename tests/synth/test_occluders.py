@@ -14,7 +14,14 @@ from tiny_run import TINY
 
 from blsm.camera import Camera
 from synth.config import GeneratorConfig, OccludersConfig, SequenceConfig
-from synth.occluders import KINDS, Occluder, occluder_faces, occluder_mesh, occluder_vertex_count, place_occluders
+from synth.occluders import (
+    KINDS,
+    Occluder,
+    occluder_faces,
+    occluder_mesh,
+    occluder_vertex_count,
+    place_occluders,
+)
 
 
 @pytest.mark.parametrize("kind", KINDS)
