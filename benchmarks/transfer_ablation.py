@@ -39,6 +39,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "combined": ("every lever: backplates, effects, close-ups, recipe", ("plates",), "combined"),
     "garments": ("clothing geometry: garments as meshes over the body (synth.garments)", ("garments",), "garments"),
     "occluders": ("occlusion: objects in front of the people in the scene (synth.occluders)", ("occluders",), "occluders"),
+    "detail": ("skin, face and hand detail: eyes, brows, lips, facial hair, pores, knuckles (subjects.detail)", ("detail",), "detail"),
 }
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 

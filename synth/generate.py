@@ -91,20 +91,23 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
         # made with other ones must not be reused, or a resumed run would not be the same dataset.
         stamp = {"model": model_fingerprint(model), "seed": cfg.seed, "texture_size": cfg.subjects.texture_size,
                  "population": json.loads(json.dumps(asdict(cfg.subjects.population())))}  # as stored (lists)
+        if cfg.subjects.detail:  # stamped only when on, so folders made before the key stay valid
+            stamp["detail"] = True
         for i in range(cfg.subjects.count):
             path = folder / f"anny_{i:04d}.npz"
             if path.exists():  # written atomically, so complete: a damaged one is an error
                 had = load_subject(path).meta.get("made_with")
                 if had != stamp:
+                    keys = [*stamp, *(k for k in had or {} if k not in stamp)]
                     what = "an earlier version" if had is None else ", ".join(
-                        k for k in stamp if had.get(k) != stamp[k]) + " differs"
+                        k for k in keys if had.get(k) != stamp.get(k)) + " differs"
                     raise ValueError(f"{path}: subject made with other settings ({what}); "
                                      "remove the dataset's subjects folder or use another --out")
                 paths.append(path)
                 continue
             t0 = time.time()
             s = anny_subject(model, path.stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size,
-                             cfg.subjects.population())
+                             cfg.subjects.population(), detail=cfg.subjects.detail, detail_seed=cfg.seed)
             s.meta["made_with"] = stamp
             save_subject(s, path)
             log(f"subject {path.stem}: height {s.meta['height_m']:.2f} m, fit {s.meta['registration']['fit_mean_mm']:.1f} mm ({time.time() - t0:.0f} s)")

@@ -110,6 +110,22 @@ def assign_hits(frame: Frame, meshes: list[tuple[np.ndarray, np.ndarray]]) -> tu
     return person, bary
 
 
+def _box_full(p: dict, camera: Camera) -> list[float] | None:
+    """The box of person ``p``'s projected mesh: from its hull points ("outline", see
+    :func:`synth.camera.outline_index`) when all of them are in front of the camera (then the whole
+    mesh is, and the extremes are the same); otherwise from every vertex in front; None for a
+    person wholly behind the camera (a sequence's camera can pass people by)."""
+    pts = np.asarray(p.get("outline", p["vertices"]), np.float64)
+    z = camera.world_to_camera(pts)[:, 2]
+    if z.min() <= 1e-6:
+        pts = np.asarray(p["vertices"], np.float64)
+        z = camera.world_to_camera(pts)[:, 2]
+    if not (z > 1e-6).any():
+        return None
+    pv = camera.project(pts[z > 1e-6])
+    return [float(pv[:, 0].min()), float(pv[:, 1].min()), float(pv[:, 0].max()), float(pv[:, 1].max())]
+
+
 def _hit_meshes(people: list[dict]) -> tuple[list, list[int], list[int], list[np.ndarray], list[bool]]:
     """The meshes a hit can be on: every body, then every hair, cloth layer and skirt. Per mesh:
     (vertices, faces), its person, the offset of its faces in the person's correspondence
@@ -227,19 +243,7 @@ def person_labels(
             box = [int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1]
         else:
             box = None
-        # The box of the projected mesh: from its hull points ("outline", see
-        # synth.camera.outline_index) when all of them are in front of the camera (then the whole
-        # mesh is, and the extremes are the same); otherwise from every vertex in front.
-        pts = np.asarray(p.get("outline", p["vertices"]), np.float64)
-        z = camera.world_to_camera(pts)[:, 2]
-        if z.min() <= 1e-6:
-            pts = np.asarray(p["vertices"], np.float64)
-            z = camera.world_to_camera(pts)[:, 2]
-        if (z > 1e-6).any():
-            pv = camera.project(pts[z > 1e-6])
-            box_full = [float(pv[:, 0].min()), float(pv[:, 1].min()), float(pv[:, 0].max()), float(pv[:, 1].max())]
-        else:  # wholly behind the camera (a sequence's camera can pass people by): no box
-            box_full = None
+        box_full = _box_full(p, camera)
         out_people.append(
             {
                 "keypoints_2d": np.where(np.isnan(uv), 0.0, uv),

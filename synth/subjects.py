@@ -546,7 +546,7 @@ def sample_phenotype(rng: np.random.Generator, population: Population | None = N
 
 def anny_subject(
     model: BLSM, subject_id: str, rng: np.random.Generator, texture_size: int = 1024,
-    population: Population | None = None,
+    population: Population | None = None, detail: bool = False, detail_seed: int = 0,
 ) -> Subject:
     """A person sampled from Anny as a stand-in scan: mesh, procedural texture, registration, rig.
 
@@ -556,6 +556,9 @@ def anny_subject(
         rng: the random generator (phenotype and outfit come from it only).
         texture_size: albedo texture size in texels.
         population: ages of the people (default :class:`Population`).
+        detail: paint face, skin and hand detail (:mod:`synth.skin_detail`; it closes the empty eye
+            sockets with eyeballs), drawn from its own generator, seeded by ``detail_seed`` and the
+            id; off, the subject is the same as without this option.
     """
     from blsm.build_anny import ANNY_TO_WORLD, barycentric_interpolate
     from synth import textures
@@ -579,9 +582,18 @@ def anny_subject(
     outfit = textures.sample_outfit(rng)
     bones = paint_weights(verts, reg_verts.numpy(), model.weights.numpy(), faces, model.faces.numpy()).argmax(1)
     cuts: dict[str, float] = {}
+    spec = None
+    if detail:
+        from synth.skin_detail import FACE_POINTS, subject_detail
+
+        with torch.no_grad():
+            kp = model._keypoints(reg_verts[None], out.joints)[0].numpy()
+        points = {k: kp[model.keypoint_names.index(k)] for k in FACE_POINTS}
+        verts, spec = subject_detail(detail_seed, subject_id, verts, faces, bones, list(model.bone_names),
+                                     points, outfit.skin, outfit.hair, pheno)  # fmt: skip
     texture = textures.make_albedo(
         uv, faces_uv, verts, faces, bones, list(model.bone_names), out.joints[0].numpy(), outfit, rng, texture_size,
-        cuts_out=cuts,
+        cuts_out=cuts, detail=spec,
     )
     meta = {
         "source": "anny",
@@ -592,4 +604,6 @@ def anny_subject(
         "registration": fit,
         "height_m": float(verts[:, 1].max() - verts[:, 1].min()),
     }
+    if spec is not None:
+        meta["detail"] = spec.to_json()
     return rig_subject(model, subject_id, verts, faces, uv, faces_uv, texture, reg, meta)
