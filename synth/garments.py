@@ -269,29 +269,31 @@ def _thickness(v, vb, label, bone_names, j, spec: GarmentSpec) -> np.ndarray:
         y_chest = 0.5 * (j["spine_03"][1] + j["shoulder_l"][1])
         y_hem = y[top & ~arm].min() if (top & ~arm).any() else j["pelvis"][1]
         down = np.clip((y_chest - y) / max(y_chest - y_hem, 1e-3), 0, 1)
-        along = np.zeros(len(v))
-        for side in ("_l", "_r"):
-            a, b = j["shoulder" + side], j["wrist" + side]
-            t = (v - a) @ (b - a) / ((b - a) @ (b - a))
-            m = arm & (np.sign(v[:, 0] - j["pelvis"][0]) == np.sign(a[0] - j["pelvis"][0]))
-            along[m] = np.clip(t[m], 0, 1)
+        along = _along_limb(v, arm, j, "shoulder", "wrist")
         base = spec.jacket if spec.jacket > 0 else spec.base
         ease = np.where(arm, 0.6 * along, down**1.5)
         d[top] = base + spec.top_ease * ease[top]
     bottoms = label == 2
     if bottoms.any():
-        down = np.zeros(len(v))
-        for side in ("_l", "_r"):
-            a, b = j["hip" + side], j["ankle" + side]
-            t = (v - a) @ (b - a) / ((b - a) @ (b - a))
-            m = leg & (np.sign(v[:, 0] - j["pelvis"][0]) == np.sign(a[0] - j["pelvis"][0]))
-            down[m] = np.clip(t[m], 0, 1)
+        down = _along_limb(v, leg, j, "hip", "ankle")
         d[bottoms] = spec.base + spec.leg_ease * (0.3 + 0.7 * down[bottoms])
         if spec.skirt:  # under a skirt the legs' paint is the skirt's: no layer there
             d[bottoms & leg] = 0.0
     shoes = (label == 3) | (label == 4)
     d[shoes] = spec.shoe
     return d
+
+
+def _along_limb(v: np.ndarray, limb: np.ndarray, j: dict[str, np.ndarray], a: str, b: str) -> np.ndarray:
+    """(V,) each ``limb`` vertex's fraction (clipped to [0, 1]) along joint ``a`` -> ``b`` of its
+    side (``_l`` or ``_r`` by the side of the pelvis it is on); 0 elsewhere."""
+    out = np.zeros(len(v))
+    for side in ("_l", "_r"):
+        p, q = j[a + side], j[b + side]
+        t = (v - p) @ (q - p) / ((q - p) @ (q - p))
+        m = limb & (np.sign(v[:, 0] - j["pelvis"][0]) == np.sign(p[0] - j["pelvis"][0]))
+        out[m] = np.clip(t[m], 0, 1)
+    return out
 
 
 def _drape(layer, v, n, e, move, cloth, d, iterations: int = 12) -> np.ndarray:

@@ -27,15 +27,9 @@ from synth.textures import Outfit, draw_cuts, make_albedo, sample_outfit, vertex
 
 
 @pytest.fixture(scope="module")
-def body(model):
-    """The model's mean body at rest (BLSM topology), its skinning and UV layout."""
-    with torch.no_grad():
-        out = model(pose=torch.zeros(1, 47))
-    return {
-        "vertices": out.template[0].numpy().astype(np.float64), "faces": model.faces.numpy(),
-        "weights": model.weights.numpy(), "joints": out.rest_joints[0].numpy(), "names": list(model.bone_names),
-        "uv": model.uvs.numpy(), "faces_uv": model.faces_uv.numpy(),
-    }  # fmt: skip
+def body(rest_body):
+    """The model's mean body at rest, its skinning and UV layout (``conftest.rest_body``)."""
+    return rest_body
 
 
 def _outfit(top: str, bottoms: str, seed: int = 0) -> Outfit:

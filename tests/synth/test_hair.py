@@ -20,14 +20,9 @@ from synth.hair import (
 
 
 @pytest.fixture(scope="module")
-def body(model):
-    """The model's mean body at rest (BLSM topology) and its skinning."""
-    with torch.no_grad():
-        out = model(pose=torch.zeros(1, 47))
-    return {
-        "vertices": out.template[0].numpy().astype(np.float64), "faces": model.faces.numpy(),
-        "weights": model.weights.numpy(), "joints": out.rest_joints[0].numpy(), "names": list(model.bone_names),
-    }  # fmt: skip
+def body(rest_body):
+    """The model's mean body at rest (BLSM topology) and its skinning (``conftest.rest_body``)."""
+    return rest_body
 
 
 def _spec(style: str, seed: int = 3) -> HairSpec:
