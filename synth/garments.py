@@ -187,7 +187,7 @@ def skirt_vertex_count() -> int:
 
 def _noise(p: np.ndarray, seed: int) -> np.ndarray:
     """Smooth value noise in [-1, 1] of points (N, 3) on the unit lattice."""
-    from synth.textures import value_noise
+    from synth.procedural import value_noise
 
     table = np.random.default_rng(seed).uniform(size=4096)
     return 2.0 * value_noise(p, table) - 1.0

@@ -49,8 +49,8 @@ def _hex(codes: str) -> np.ndarray:
 
 
 def skin_darkness(skin: np.ndarray) -> float:
-    """0 for the lightest skin of :data:`synth.textures.SKIN_PALETTE`, 1 for the darkest."""
-    from synth.textures import SKIN_PALETTE
+    """0 for the lightest skin of :data:`synth.procedural.SKIN_PALETTE`, 1 for the darkest."""
+    from synth.procedural import SKIN_PALETTE
 
     lo, hi = SKIN_PALETTE[-1] @ LUM, SKIN_PALETTE[0] @ LUM
     return float(np.clip((hi - np.asarray(skin) @ LUM) / (hi - lo), 0, 1))
@@ -213,7 +213,7 @@ def paint_detail(body: Any, faces: np.ndarray, label: np.ndarray, colour: np.nda
     Returns:
         (N, 3) linear RGB, a new array.
     """
-    from synth.textures import value_noise
+    from synth.procedural import value_noise
 
     colour = np.array(colour, dtype=np.float64)
     skin_rgb, hair_rgb = np.asarray(outfit.skin), np.asarray(outfit.hair)

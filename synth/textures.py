@@ -31,6 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from blsm.color import linear_to_srgb, srgb_to_linear
+from synth.procedural import SKIN_PALETTE, value_noise
 from synth.raster import rasterise_uv, uv_triangles
 
 if TYPE_CHECKING:
@@ -50,11 +51,6 @@ PARTS = (
 # Leg hems: (bone head, bone tail, range of the hem's fraction along that bone).
 HEMS = {"shorts": ("hip", "knee", 0.3, 0.6), "skirt": ("hip", "knee", 0.85, 1.05),
         "capris": ("knee", "ankle", 0.45, 0.7), "trousers": ("knee", "ankle", 0.88, 1.0)}  # fmt: skip
-# Linear RGB skin albedos from very light to very dark.
-SKIN_PALETTE = np.array([
-    [0.62, 0.45, 0.36], [0.55, 0.38, 0.29], [0.47, 0.31, 0.22], [0.38, 0.24, 0.16],
-    [0.29, 0.17, 0.11], [0.21, 0.12, 0.075], [0.14, 0.08, 0.05], [0.09, 0.05, 0.035],
-])  # fmt: skip
 _HEX = {  # sRGB of everyday colours: navy, grey, charcoal, black, white, burgundy, ...
     "tops": "1f2a44 8a8d91 36393d 161616 e8e8e4 6d1f2f 2f4f3a 6b6b3a c3b091 b22222 d4a017 3e7c8c "
     "f2d7d0 9bb7d4 5b3a6b d8c8a8 e07a2f",
@@ -179,21 +175,6 @@ def sample_outfit(rng: np.random.Generator) -> Outfit:
     hair = _palette("hair")[rng.choice(len(w), p=w / w.sum())] * rng.uniform(0.85, 1.15)
     colors = {k: _rgb(v) for k, v in colors.items()}
     return Outfit(_rgb(skin), top, bottoms, shoes, colors, patterns, _rgb(hair))
-
-
-def value_noise(p: np.ndarray, table: np.ndarray) -> np.ndarray:
-    """Trilinear value noise in [0, 1] of points p (N, 3) on the unit lattice."""
-    i = np.floor(p)
-    f = p - i
-    f = f * f * (3 - 2 * f)
-    i = i.astype(np.int64)
-    hashes = [(i[:, a] * k, (i[:, a] + 1) * k) for a, k in enumerate((73856093, 19349663, 83492791))]
-    weights = [(1 - f[:, a], f[:, a]) for a in range(3)]
-    out = np.zeros(len(p))
-    for cx, cy, cz in np.ndindex(2, 2, 2):
-        h = (hashes[0][cx] ^ hashes[1][cy] ^ hashes[2][cz]) & (len(table) - 1)
-        out += weights[0][cx] * weights[1][cy] * weights[2][cz] * table[h]
-    return out
 
 
 def _pulse(x: np.ndarray, duty: float, width: np.ndarray) -> np.ndarray:

@@ -195,7 +195,9 @@ def test_generate_with_clothes_validates_and_keeps_the_bodys_labels(tiny, tmp_pa
         a, b = plain[k]["json"]["people"], clothed[k]["json"]["people"]
         assert [p["subject"] for p in a] == [p["subject"] for p in b]
         for p, q in zip(a, b):
-            assert p["blsm"]["pose"] == q["blsm"]["pose"] and p["bone_lengths"] == q["bone_lengths"]
+            assert p["blsm"]["pose"] == q["blsm"]["pose"] and p["blsm"]["bone"] == q["blsm"]["bone"]
+            # Leaf bones' lengths come from posed keypoints placed elsewhere: float32 round-off.
+            assert np.allclose(p["bone_lengths"], q["bone_lengths"], atol=1e-5)
             assert "garments" in q and "garments" not in p
         more += int((clothed[k]["mask"] > 0).sum() > (plain[k]["mask"] > 0).sum())
     assert more >= TINY.num // 2
