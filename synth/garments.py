@@ -159,7 +159,9 @@ class GarmentMesh:
         layer: (V, 3) float32 the cloth layer (the body's topology and weights).
         label: (V,) the paint's label of each body vertex (:func:`synth.textures.vertex_labels`).
         skirt: (S, 3) float32 the skirt's vertices (:func:`skirt_faces`), or None.
-        skirt_weights: (S, J) its LBS weights; ``skirt_colours`` (S, 3) linear RGB; both or None.
+        skirt_weights: (S, J) its LBS weights; ``skirt_colours`` (S, 3) linear RGB;
+            ``skirt_face_bones`` (Fs,) each skirt face's bone (:func:`synth.labels.face_bones`);
+            all three or None.
     """
 
     layer: np.ndarray
@@ -167,6 +169,7 @@ class GarmentMesh:
     skirt: np.ndarray | None
     skirt_weights: np.ndarray | None
     skirt_colours: np.ndarray | None
+    skirt_face_bones: np.ndarray | None = None
 
 
 @lru_cache(maxsize=1)
@@ -250,6 +253,8 @@ def build_garments(
         sc = np.clip(np.asarray(colours[key], np.float64)[None] * grain[:, None], 0.0, 1.0)
     return GarmentMesh(
         layer=layer.astype(np.float32), label=np.asarray(label, np.int8),
+        # synth.labels.face_bones's rule (not imported: labels -> render -> garments)
+        skirt_face_bones=None if sw is None else sw.astype(np.float32)[skirt_faces()].sum(1).argmax(1),
         skirt=None if sk is None else sk.astype(np.float32), skirt_weights=None if sw is None else sw.astype(np.float32),
         skirt_colours=None if sc is None else sc.astype(np.float32),
     )  # fmt: skip

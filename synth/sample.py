@@ -645,14 +645,8 @@ def _cloth_labels(p: Person) -> dict[str, Any]:
     g = p.rig.garments
     out: dict[str, Any] = {"cloth_vertices": p.cloth}
     if p.skirt is not None:
-        out.update(skirt_vertices=p.skirt, skirt_faces=skirt_faces(), skirt_face_bones=_skirt_face_bones(g))
+        out.update(skirt_vertices=p.skirt, skirt_faces=skirt_faces(), skirt_face_bones=g.skirt_face_bones)
     return out
-
-
-def _skirt_face_bones(g: Any) -> np.ndarray:
-    from synth.garments import skirt_faces
-
-    return g.skirt_weights[skirt_faces()].sum(1).argmax(1)
 
 
 def _l(a: Any) -> Any:

@@ -80,6 +80,7 @@ class MeshRebuilder:
         self.subjects: dict[str, Any] = {}
         self.hair: dict[tuple, Any] = {}
         self.garments: dict[tuple, Any] = {}
+        self.body_bones: dict[str, np.ndarray] = {}  # a clothed subject's face bones (rigged pipeline)
         self.cloth: tuple[int, np.ndarray] | None = None  # the last person's (first layer face, body face bones)
         self.dataset = dataset
         self.regions: dict[tuple, dict[str, np.ndarray]] = {}  # a sequence person's contact regions
@@ -132,7 +133,9 @@ class MeshRebuilder:
             from synth.garments import skirt_faces
             from synth.labels import face_bones
 
-            self.cloth = (len(f), face_bones(p.faces, s.weights))
+            if sid not in self.body_bones:  # per subject, not per person and sample
+                self.body_bones[sid] = face_bones(p.faces, s.weights)
+            self.cloth = (len(f), self.body_bones[sid])
             f, v = np.concatenate([f, p.faces + len(v)]), np.concatenate([v, p.cloth])
             if p.skirt is not None:
                 f, v = np.concatenate([f, skirt_faces() + len(v)]), np.concatenate([v, p.skirt])
