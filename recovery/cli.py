@@ -63,7 +63,7 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     r.add_argument("--synthetic-people", type=int, default=400, help="at most N synthetic people, spread over the set")
     r.add_argument("--reference-command", help="the reference's command line, run with JOB.json OUT.json appended "
-                   "(default: recovery/eval/reference_pose.py in .venv-reference)")
+                   "(default: blsm/pose2d/mediapipe_pose.py in .venv-reference)")
     r.add_argument("--sheet", type=int, default=48, help="people on each overlay sheet")
     r.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
     return p

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The reference 2D pose estimator of the transfer check (recovery transfer, docs/transfer.md):
+# The 2D pose estimator blsm/pose2d/mediapipe_pose.py runs in: the reference of the transfer check
+# (recovery transfer, docs/transfer.md) and the detector of markerless registration (docs/markerless.md):
 # MediaPipe Pose 0.10.9 in an environment of its own (it pins protobuf 3 and its own OpenCV), with
 # its "full" BlazePose models from the wheel (nothing is downloaded at run time). About 1 minute.
 #   bash scripts/setup_reference.sh [ENV]      (default: .venv-reference)

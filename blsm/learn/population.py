@@ -19,10 +19,16 @@ for pose). Here Anny (PyPI ``anny``) plays the scanned people:
   ``gt_points`` of a scan is that embedding evaluated on the *clean* posed Anny body (before any
   artefact): "the point of this person's skin that the template vertex stands for", exact by
   construction; it is not the registration a perfect algorithm would find on the noisy scan.
+  ``gt_joints`` are the posed Anny bone heads the BLSM joints were built from (the first Anny bone
+  of each BLSM bone's group, as ``blsm build-anny``), exact by the same construction.
 * **Scanner artefacts** (:class:`Artefacts`): noise along the normals, holes under the arms and
   the soles, missing fingertips, a few random holes; faces removed, unreferenced vertices dropped, so
   the scan topology differs from Anny's. Landmarks are the gt landmark points plus noise (CAESAR's
-  landmarking error is a few millimetres), some missing (NaN).
+  landmarking error is a few millimetres), some missing (NaN). Optionally (off by default) missing
+  feet, a stool beside the body and markers on the floor (:mod:`blsm.learn.scan_paint`), appended
+  to the scan mesh as separate components; ``meta["props"]`` names their vertex ranges.
+* **Colours**: per-vertex ``colors`` (skin, clothing-like regions, hair; :func:`scan_paint.paint_body`)
+  from a random stream of their own, so the other arrays are those of an uncoloured population.
 
 ``make_population`` writes the population folder (``index.json`` + ``scans/*.npz``).
 """
@@ -190,7 +196,8 @@ def pose_anny(
     angles: torch.Tensor,
     global_orient: torch.Tensor | None = None,
     transl: torch.Tensor | None = None,
-) -> np.ndarray:
+    return_heads: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Pose Anny bodies with BLSM poses (see the module docstring).
 
     Args:
@@ -199,9 +206,10 @@ def pose_anny(
         bodies: (B, Va, 3) rest bodies and their (B, Ka, 3) rest Anny joints.
         angles: (B, 47) BLSM atom angles, radians.
         global_orient: (B, 3) axis-angle about the root joint; transl: (B, 3) metres.
+        return_heads: also return the (B, Ka, 3) posed Anny bone heads (:func:`posed_heads`).
 
     Returns:
-        (B, Va, 3) float64 posed vertices.
+        (B, Va, 3) float64 posed vertices (and the heads).
     """
     b = bodies.vertices.shape[0]
     if angles.shape != (b, model.num_dofs):
@@ -218,20 +226,28 @@ def pose_anny(
     rot_j = u @ vt  # remove any round-off scale
     rot = rot_j[:, rig.blsm_bone]  # (B, Ka, 3, 3)
     heads = bodies.heads
-    tr = np.zeros_like(heads)  # posed joint positions (B, Ka, 3)
-    for k, p in enumerate(rig.parents):
-        if p < 0:
-            tr[:, k] = heads[:, k]
-        else:
-            # Bone k's head moves with its parent: p's transform applied to k's rest head.
-            tr[:, k] = np.einsum("bij,bj->bi", rot[:, p], heads[:, k] - heads[:, p]) + tr[:, p]
-    if transl is not None:
-        tr = tr + transl.double().numpy()[:, None]
+    tr = posed_heads(rig, heads, rot, transl)  # (B, Ka, 3)
     # x -> R_k (x - h_k) + tr_k  ==  R_k x + (tr_k - R_k h_k)
     off = tr - np.einsum("bkij,bkj->bki", rot, heads)
     mats = np.concatenate([rot, off[..., None]], axis=-1).reshape(b, -1, 12)  # (B, Ka, 12)
     blended = np.einsum("vk,bkc->bvc", rig.weights, mats).reshape(b, -1, 3, 4)  # (B, Va, 3, 4)
+    if return_heads:
+        return np.einsum("bvij,bvj->bvi", blended[..., :3], bodies.vertices) + blended[..., 3], tr
     return np.einsum("bvij,bvj->bvi", blended[..., :3], bodies.vertices) + blended[..., 3]
+
+
+def posed_heads(rig: AnnyRig, heads: np.ndarray, rot: np.ndarray, transl: torch.Tensor | None) -> np.ndarray:
+    """(B, Ka, 3) posed Anny bone heads: rest heads (B, Ka, 3) moved by the bones' world rotations
+    (B, Ka, 3, 3) down Anny's tree (each head moves with its parent), plus ``transl`` (B, 3)."""
+    tr = np.zeros_like(heads)
+    for k, p in enumerate(rig.parents):
+        if p < 0:
+            tr[:, k] = heads[:, k]
+        else:
+            tr[:, k] = np.einsum("bij,bj->bi", rot[:, p], heads[:, k] - heads[:, p]) + tr[:, p]
+    if transl is not None:
+        tr = tr + transl.double().numpy()[:, None]
+    return tr
 
 
 # ----------------------------------------------------------------------------------------------
@@ -255,6 +271,9 @@ class Artefacts:
         landmark_noise: RMS 3D landmark location error (5 mm; Gaussian, landmark_noise / sqrt(3)
             per axis, so the median 3D error is about 4.4 mm).
         landmark_missing: probability that a landmark is not located (NaN row).
+        missing_feet: remove both feet (Anny vertices skinned mostly to the feet and toes).
+        stool: add a stool (a 0.45 m closed cylinder) on the floor beside the body.
+        floor_markers: number of small flat discs on the floor around the body.
     """
 
     noise: float = 0.001
@@ -265,6 +284,9 @@ class Artefacts:
     random_hole_radius: float = 0.015
     landmark_noise: float = 0.005
     landmark_missing: float = 0.03
+    missing_feet: bool = False
+    stool: bool = False
+    floor_markers: int = 0
 
     def __post_init__(self) -> None:
         for k, v in asdict(self).items():
@@ -310,6 +332,9 @@ def hole_vertices(
             miss[tip] = True
             tips += 1
     counts["fingertips"] = tips
+    if art.missing_feet:
+        miss |= rig.feet
+        counts["feet"] = int(rig.feet.sum())
     for _ in range(art.random_holes):
         c = rest[rng.integers(len(rest))]
         miss |= np.linalg.norm(rest - c, axis=1) < art.random_hole_radius
@@ -326,10 +351,15 @@ def make_scan_mesh(
         v += vertex_normals(posed, faces) * rng.normal(0.0, noise, size=(len(v), 1))
     keep = ~miss[faces].any(1)
     f = faces[keep]
-    used = np.unique(f)
+    used = kept_vertices(faces, miss)
     remap = np.full(len(v), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     return v[used].astype(np.float32), remap[f].astype(np.int32)
+
+
+def kept_vertices(faces: np.ndarray, miss: np.ndarray) -> np.ndarray:
+    """(N,) the Anny vertices a scan keeps, in the scan's vertex order (:func:`make_scan_mesh`)."""
+    return np.unique(faces[~miss[faces].any(1)])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -413,8 +443,12 @@ def _make_scans(
     jobs: list[tuple[int, int, torch.Tensor, torch.Tensor, str]],
     art: Artefacts,
     seed: int,
+    colors: bool = True,
 ) -> list[Scan]:
     """Scans for jobs (subject position, pose number, angles (47,), orient (3,), source)."""
+    from blsm.build_anny import anny_bone_groups
+    from blsm.learn.scan_paint import add_props, paint_body
+
     am = anny_model()
     labels = list(am.bone_labels)
     bodies = rest_bodies(
@@ -422,7 +456,8 @@ def _make_scans(
     )
     angles = torch.stack([j[2] for j in jobs])
     orient = torch.stack([j[3] for j in jobs])
-    posed = pose_anny(model, rig, bodies, angles, orient)
+    posed, heads = pose_anny(model, rig, bodies, angles, orient, return_heads=True)
+    gt_joints = heads[:, [g[0] for g in anny_bone_groups(labels)]]  # (B, J, 3): as blsm build-anny
     gt = barycentric_interpolate(posed, rig.faces, rig.tri, rig.bary)  # (B, Vb, 3)
     lm_names = landmark_names()
     lm_gt = landmark_points(torch.as_tensor(gt)).numpy()  # (B, L, 3)
@@ -434,6 +469,14 @@ def _make_scans(
         v, f = make_scan_mesh(posed[b], rig.faces, miss, art.noise, rng)
         lm = lm_gt[b] + rng.normal(0.0, art.landmark_noise / np.sqrt(3.0), size=lm_gt[b].shape)
         lm[rng.random(len(lm)) < art.landmark_missing] = np.nan
+        # Colours and props draw from streams of their own: the arrays above stay as without them.
+        paint = paint_body(bodies.vertices[b], rig.weights, labels, sub["phenotype"],
+                           np.random.default_rng([seed, sub["index"], 4]))
+        col = paint[kept_vertices(rig.faces, miss)]
+        props: dict[str, list[int]] = {}
+        if art.stool or art.floor_markers:
+            v, f, col, props = add_props(v, f, col, posed[b], art.stool, art.floor_markers,
+                                         np.random.default_rng([seed, sub["index"], 5, k]))
         meta = {
             "id": f"{sub['id']}_{k:02d}",
             "subject": sub["id"],
@@ -446,6 +489,7 @@ def _make_scans(
             "height_m": float(bodies.vertices[b][:, 1].max() - bodies.vertices[b][:, 1].min()),
             "artefacts": {**asdict(art), "removed_vertices": int(miss.sum()), **counts},
             "gt": "gt_points = BLSM template vertices embedded on Anny's topology, on the clean posed body",
+            "props": props,
         }
         scans.append(
             Scan(
@@ -458,6 +502,8 @@ def _make_scans(
                 ang.float().numpy(),
                 ori.float().numpy(),
                 np.zeros(3, np.float32),
+                gt_joints=gt_joints[b].astype(np.float32),
+                colors=col if colors else None,
             )
         )
     return scans
@@ -475,6 +521,7 @@ def make_population(
     overwrite: bool = False,
     batch: int = 8,
     model=None,
+    colors: bool = True,
 ) -> dict[str, Any]:
     """Write a scan population folder (``index.json`` + ``scans/*.npz``).
 
@@ -490,6 +537,7 @@ def make_population(
         overwrite: replace an existing population.
         batch: scans posed together through Anny.
         model: the BLSM model (default: the packaged one).
+        colors: paint per-vertex colours (:func:`scan_paint.paint_body`).
 
     Returns:
         The index (also written as ``index.json``).
@@ -532,7 +580,7 @@ def make_population(
     last_log = 0.0
     for start in range(0, len(jobs), batch):
         chunk = jobs[start : start + batch]
-        for scan in _make_scans(model, rig, subjects, chunk, art, seed):
+        for scan in _make_scans(model, rig, subjects, chunk, art, seed, colors):
             rel = f"scans/{scan.meta['id']}.npz"
             save_scan(scan, out / rel)
             files[int(scan.meta["subject"][1:])].append(rel)

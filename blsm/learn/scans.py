@@ -19,7 +19,14 @@ gt_points          (Vb, 3) float32 optional: true position of every BLSM templat
 gt_angles          (47,) float32   optional: the true pose, radians
 gt_global_orient   (3,) float32    optional: axis-angle, radians
 gt_transl          (3,) float32    optional: metres
+gt_joints          (J, 3) float32  optional: true BLSM joint positions of the posed body (the
+                                   Anny bone head each BLSM joint was built from), metres
+colors             (N, 3) uint8    optional: per-vertex sRGB colour (a textured scan, e.g. for
+                                   markerless keypoints, :mod:`blsm.learn.markerless`)
 =================  ==============  ===========================================================
+
+Colours are stored as uint8; :class:`Scan` accepts (N, 3) uint8 or float in [0, 1] (converted on
+saving). OBJ / PLY meshes with vertex colours (trimesh's ``visual.vertex_colors``) keep them.
 
 :func:`load_scan` also reads OBJ / PLY / GLB meshes (trimesh) with a landmark JSON file
 ``<stem>.landmarks.json`` beside them (or given explicitly): ``{name: [x, y, z]}``.
@@ -42,7 +49,7 @@ from blsm.learn.landmarks import LANDMARKS_YAML
 FORMAT = "blsm-scan"
 FORMAT_VERSION = 1
 MESH_SUFFIXES = (".obj", ".ply", ".glb")
-_GT_KEYS = ("gt_points", "gt_angles", "gt_global_orient", "gt_transl")
+_GT_KEYS = ("gt_points", "gt_angles", "gt_global_orient", "gt_transl", "gt_joints")
 
 
 @dataclass
@@ -57,6 +64,8 @@ class Scan:
         meta: JSON-able metadata (``id``, ``subject``, ``pose``, ``source``, ...).
         gt_points: (Vb, 3) float32 or None: ground-truth template correspondence.
         gt_angles: (47,) radians or None. gt_global_orient: (3,) or None. gt_transl: (3,) or None.
+        gt_joints: (J, 3) float32 true BLSM joints, metres, or None.
+        colors: (N, 3) uint8 (or float in [0, 1]) sRGB vertex colours, or None.
     """
 
     vertices: np.ndarray
@@ -68,6 +77,8 @@ class Scan:
     gt_angles: np.ndarray | None = None
     gt_global_orient: np.ndarray | None = None
     gt_transl: np.ndarray | None = None
+    gt_joints: np.ndarray | None = None
+    colors: np.ndarray | None = None
 
     @property
     def located(self) -> np.ndarray:
@@ -208,6 +219,20 @@ def check_scan(scan: Scan, where: str, require_landmarks: bool = False) -> None:
         val = getattr(scan, key)
         if val is not None and not np.isfinite(val).all():
             raise ValueError(f"{where}: {key} holds NaN or inf")
+    if scan.colors is not None:
+        c = np.asarray(scan.colors)
+        if c.shape != (len(v), 3):
+            raise ValueError(f"{where}: colors must be (N, 3) with N = {len(v)} vertices, got {c.shape}")
+        if c.dtype != np.uint8 and not (np.isfinite(c).all() and c.min() >= 0 and c.max() <= 1):
+            raise ValueError(f"{where}: float colors must be finite and in [0, 1]")
+
+
+def colors_uint8(colors: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 sRGB colours from uint8 or float colours in [0, 1]."""
+    c = np.asarray(colors)
+    if c.dtype == np.uint8:
+        return c
+    return np.round(np.clip(c.astype(np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -228,6 +253,8 @@ def save_scan(scan: Scan, path: str | Path) -> Path:
     for key in _GT_KEYS:
         if getattr(scan, key) is not None:
             arrays[key] = np.asarray(getattr(scan, key), np.float32)
+    if scan.colors is not None:
+        arrays["colors"] = colors_uint8(scan.colors)
     return write_versioned_npz(path, FORMAT, FORMAT_VERSION, arrays)
 
 
@@ -247,6 +274,7 @@ def _load_npz(path: Path) -> Scan:
         landmarks=data["landmarks"].astype(np.float32).reshape(-1, 3),
         meta=meta,
         **{k: (data[k].astype(np.float32) if k in data else None) for k in _GT_KEYS},
+        colors=data["colors"].astype(np.uint8) if "colors" in data else None,
     )
 
 
@@ -289,7 +317,19 @@ def _load_mesh(path: Path, landmarks: str | Path | None) -> Scan:
         landmark_names=names,
         landmarks=points,
         meta={"id": path.stem, "source": str(path)},
+        colors=_mesh_colors(mesh),
     )
+
+
+def _mesh_colors(mesh) -> np.ndarray | None:
+    """(N, 3) uint8 vertex colours of a trimesh mesh, or None (no colours, or a texture/UV map)."""
+    visual = getattr(mesh, "visual", None)
+    if visual is None or getattr(visual, "kind", None) != "vertex":
+        return None
+    c = np.asarray(visual.vertex_colors)
+    if c.ndim != 2 or len(c) != len(mesh.vertices) or c.shape[1] < 3:
+        return None
+    return np.ascontiguousarray(c[:, :3], dtype=np.uint8)
 
 
 def load_scan(path: str | Path, landmarks: str | Path | None = None, require_landmarks: bool = False) -> Scan:

@@ -4,7 +4,7 @@
 
 There are no labelled real images here, so both domains are scored against one **reference**, a 2D
 pose estimator trained on photographs (MediaPipe Pose by default, run by
-``recovery/eval/reference_pose.py`` in an environment of its own, ``scripts/setup_reference.sh``), on the
+``blsm/pose2d/mediapipe_pose.py`` in an environment of its own, ``scripts/setup_reference.sh``), on the
 17 COCO keypoints that BLSM and BlazePose both define (:data:`COCO_NAMES`).
 
 For every person (a box of ``DIR/boxes.json``, or a person of the synthetic dataset, its label box):
@@ -50,6 +50,7 @@ import numpy as np
 import torch
 
 from blsm.io import atomic_write
+from blsm.pose2d.detectors import SCRIPT as MEDIAPIPE_SCRIPT
 
 COCO_NAMES: tuple[str, ...] = (
     "nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",
@@ -66,7 +67,7 @@ JOINT_BOX_GROWTH = 1.18
 CROP_SCALE = 1.2  # the network's crop side over the person box's (training: SynthDataset's box_scale)
 THRESHOLDS = (0.1, 0.2)
 BOOTSTRAP = 2000
-REFERENCE_SCRIPT = Path(__file__).with_name("reference_pose.py")
+REFERENCE_SCRIPT = MEDIAPIPE_SCRIPT  # blsm/pose2d/mediapipe_pose.py, stand-alone
 REFERENCE_ENV = Path(__file__).resolve().parents[2] / ".venv-reference"  # the repository root's
 IMAGE_EXT = (".jpg", ".jpeg", ".png")
 
@@ -156,7 +157,7 @@ def _file_hash(path: Path, memo: dict[Path, str]) -> str:
 def run_reference(people: list[Person], command: list[str], cache_path: Path) -> np.ndarray:
     """(N, 17, 3) the reference's joints (x, y, visibility) for each person, NaN where it found none.
 
-    ``command`` is run as ``command + [JOB.json, OUT.json]`` (:mod:`recovery.eval.reference_pose`'s
+    ``command`` is run as ``command + [JOB.json, OUT.json]`` (:mod:`blsm.pose2d.mediapipe_pose`'s
     interface) for the people not in the cache; a failing command is a ValueError with its last line.
     """
     memo: dict[Path, str] = {}

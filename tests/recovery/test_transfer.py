@@ -27,7 +27,7 @@ from recovery.eval.transfer import (
     visible_joints,
 )
 
-# A stand-in for recovery/eval/reference_pose.py: the same interface (JOB.json OUT.json), one fixed pose
+# A stand-in for blsm/pose2d/mediapipe_pose.py: the same interface (JOB.json OUT.json), one fixed pose
 # (TEMPLATE, in box coordinates) placed into each box; nobody in a box narrower than 20 px; it
 # counts its calls in CALLS so that the test can see the cache at work.
 FAKE_REFERENCE = '''

@@ -1,9 +1,11 @@
-"""The transfer check's reference 2D pose estimator: MediaPipe Pose (BlazePose GHUM 3D, "full" model).
+"""MediaPipe Pose (BlazePose GHUM 3D, "full" model) as a stand-alone 2D pose script.
 
-Run as a script in an environment with ``mediapipe==0.10.9`` (``scripts/setup_reference.sh`` makes
-one; MediaPipe pins its own protobuf and OpenCV, so it stays out of the project's environment)::
+Used by markerless scan keypoints (:mod:`blsm.pose2d.detectors`, :mod:`blsm.learn.markerless`) and
+as the reference estimator of ``recovery transfer`` (:mod:`recovery.eval.transfer`). Run as a script
+in an environment with ``mediapipe==0.10.9`` (``scripts/setup_reference.sh`` makes one; MediaPipe
+pins its own protobuf and OpenCV, so it stays out of the project's environment)::
 
-    python recovery/eval/reference_pose.py JOB.json OUT.json
+    python blsm/pose2d/mediapipe_pose.py JOB.json OUT.json
 
 ``JOB.json`` is ``{"items": [{"image": PATH, "box": [x0, y0, x1, y1]}, ...]}``. For each item the
 image is cropped to the square of side ``CROP_GROWTH`` times the box's longer side around the box's
@@ -42,7 +44,7 @@ def crop_square(image, box, growth=CROP_GROWTH):  # noqa: ANN001, ANN201 (no typ
 
 def main(argv: list[str]) -> int:
     if len(argv) != 2:
-        print("usage: reference_pose.py JOB.json OUT.json", file=sys.stderr)
+        print("usage: mediapipe_pose.py JOB.json OUT.json", file=sys.stderr)
         return 2
     import mediapipe as mp
     import numpy as np
