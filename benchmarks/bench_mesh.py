@@ -24,9 +24,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from report import write_section  # noqa: E402
 
 import blsm  # noqa: E402
+from blsm.spiral.conv import spiral_conv, spiral_gather  # noqa: E402
 from recovery.mesh.operators import mesh_operators  # noqa: E402
 from recovery.models.mesh_ae import MeshAutoencoder  # noqa: E402
-from recovery.models.spiral_conv import spiral_conv, spiral_gather  # noqa: E402
 
 
 def rate(fn, n: int, items: int, sync=lambda: None) -> float:

@@ -33,6 +33,10 @@ keypoint_joint         (K,) int32          joint index of a joint keypoint, -1 f
 keypoint_vertices      (K, 3) int32        surface keypoints: three vertices ...
 keypoint_weights       (K, 3) float32      ... and their barycentric weights
 =====================  ==================  ==========================================================
+
+Optional: a BLSM-spiral model (Eq. 11) has a ``shape_decoder`` entry in ``meta_json`` and arrays
+``shape_decoder__*`` (:mod:`blsm.spiral.shape`); its ``population_shape`` stays the PCA coefficients
+of ``shape_basis`` in the file, and the loaded model's are the decoder's latent codes.
 """
 
 from __future__ import annotations
@@ -52,6 +56,8 @@ import numpy as np
 
 FORMAT = "blsm-model"
 FORMAT_VERSION = 1
+SHAPE_DECODER_PREFIX = "shape_decoder__"
+"""Arrays of a non-linear shape decoder (meta ``shape_decoder``; :mod:`blsm.spiral.shape`), kept on read."""
 
 _ARRAYS: dict[str, tuple[str, tuple[str, ...]]] = {
     "template": ("f", ("V", "3")),
@@ -253,7 +259,7 @@ def read_model(path: str | Path) -> ModelData:
         raise ValueError(f"{path}: meta_json must hold a JSON object")
     if "dof_table_yaml" not in raw:
         raise ValueError(f"{path}: missing dof_table_yaml")
-    arrays = {k: v for k, v in raw.items() if k in _ARRAYS}
+    arrays = {k: v for k, v in raw.items() if k in _ARRAYS or k.startswith(SHAPE_DECODER_PREFIX)}
     data = ModelData(arrays=arrays, meta=meta, dof_table_yaml=str(raw["dof_table_yaml"]), path=path)
     validate(data, str(path))
     return data

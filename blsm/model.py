@@ -155,6 +155,12 @@ class BLSM(nn.Module):
         self.shape_decoder: nn.Module = LinearShapeDecoder(
             torch.as_tensor(a["shape_basis"], dtype=f32)
         )
+        if meta.get("shape_decoder") is not None:  # BLSM-spiral (Eq. 11): D(z) and the training codes
+            from blsm.spiral.shape import decoder_from_arrays
+
+            decoder, codes = decoder_from_arrays(a, meta["shape_decoder"], where)
+            self.set_shape_decoder(decoder.requires_grad_(False))  # a fixed model, like the linear one
+            buf("population_shape", codes)
 
     # ----------------------------------------------------------------------------------------
     # Sizes and names

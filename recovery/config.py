@@ -286,7 +286,7 @@ class MeshConfig:
     Attributes:
         channels: spiral convolution widths per level (Table 4.1: 16, 32, 64, 128).
         latent: latent code size (128).
-        factors, rings, lengths: the operators (:class:`recovery.mesh.operators.MeshOpsSettings`).
+        factors, rings, lengths: the operators (:class:`blsm.spiral.hierarchy.MeshOpsSettings`).
         cache: folder of the operator cache (keyed by the model file's hash).
         hidden: width of the two FC layers after the backbone (the 1024-D image feature).
         autoencoder: a pretrained autoencoder checkpoint ("" for none): its decoder and
@@ -313,7 +313,7 @@ class MeshConfig:
             raise ValueError("mesh.freeze_decoder needs a pretrained mesh.autoencoder")
 
     def ops_settings(self) -> Any:
-        from recovery.mesh.operators import MeshOpsSettings
+        from blsm.spiral.hierarchy import MeshOpsSettings
 
         return MeshOpsSettings(factors=tuple(self.factors), rings=tuple(self.rings), lengths=tuple(self.lengths))
 

@@ -90,7 +90,13 @@ class Fittable(abc.ABC):
 
 
 class BLSMFittable(Fittable):
-    """BLSM-linear: ``vertices = BLSM(pose, c_b, c_s, R, t)`` (Eqs. 5.1-5.12)."""
+    """BLSM-linear: ``vertices = BLSM(pose, c_b, c_s, R, t)`` (Eqs. 5.1-5.12).
+
+    Also BLSM-spiral (paper 000 Eq. 11): a model whose ``shape_decoder`` is a
+    :class:`blsm.spiral.shape.SpiralShapeDecoder` takes its latent code z as ``shape``, so the group
+    ``shape`` holds z (L entries) and ``num_coeffs = Kb + L`` frees every bone and latent coefficient.
+    The staged fit and its Levenberg-Marquardt polish differentiate through the decoder.
+    """
 
     def __init__(self, model: torch.nn.Module) -> None:
         self.skeleton = model

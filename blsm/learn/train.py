@@ -60,7 +60,7 @@ import dataclasses
 import datetime
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -96,6 +96,7 @@ from blsm.learn.train_fit import (
     templates,
     unskinned,
 )
+from blsm.spiral.autodecoder import SpiralConfig
 
 
 def _log(msg: str) -> None:
@@ -130,18 +131,31 @@ class CorrectivesConfig:
             raise ValueError("correctives.alternations must be >= 1 and correctives.ridge >= 0")
 
 
+SHAPE_DECODERS = ("linear", "spiral")
+
+
 @dataclass
 class ShapeConfig:
-    """Shape PCA of the T-pose residuals (Eqs. 5.28, 5.8)."""
+    """Shape PCA of the T-pose residuals (Eqs. 5.28, 5.8), and optionally BLSM-spiral (Eq. 11).
+
+    ``decoder: spiral`` also learns the spiral decoder of :mod:`blsm.spiral.autodecoder` (settings in
+    ``spiral:``) on the same residuals, and the model file's shape space is that decoder
+    (:mod:`blsm.spiral.shape`); the PCA basis is still learnt and stored, and it is what the blend
+    weights (step 5) and the held-out fit of the report use.
+    """
 
     num_coeffs: int = 16
     symmetry: str = "symmetrize"  # symmetrize | augment
+    decoder: str = "linear"  # linear (Eq. 8) | spiral (Eq. 11)
+    spiral: SpiralConfig = field(default_factory=SpiralConfig)
 
     def __post_init__(self) -> None:
         if self.num_coeffs < 1:
             raise ValueError(f"shape.num_coeffs must be >= 1, got {self.num_coeffs}")
         if self.symmetry not in SYMMETRY_MODES:
             raise ValueError(f"shape.symmetry must be one of {', '.join(SYMMETRY_MODES)}, got {self.symmetry!r}")
+        if self.decoder not in SHAPE_DECODERS:
+            raise ValueError(f"shape.decoder must be one of {', '.join(SHAPE_DECODERS)}, got {self.decoder!r}")
 
 
 @dataclass
@@ -288,6 +302,7 @@ class _Run:
     gen: torch.Generator
     report: dict[str, Any]
     mark: float = field(default_factory=time.perf_counter)
+    spiral: tuple[dict[str, np.ndarray], dict[str, Any]] | None = None  # model-file arrays and metadata
 
     def lap(self, name: str) -> None:
         now = time.perf_counter()
@@ -296,7 +311,8 @@ class _Run:
 
 
 def learn_model(
-    initial_model, registrations: Sequence[Any], config: TrainConfig | None = None
+    initial_model, registrations: Sequence[Any], config: TrainConfig | None = None,
+    on_shape_residuals: Callable[[torch.Tensor], None] | None = None,
 ) -> tuple[io.ModelData, dict]:
     """Learn b_mean, P_b, V_mean, P_bc, P_s and W from registrations (Eqs. 5.26-5.31).
 
@@ -306,6 +322,9 @@ def learn_model(
             ``global_orient`` (3,), ``transl`` (3,) (numpy or torch) and ``meta`` (dict; see
             :func:`is_rest_pose`; ``split`` "test" registrations are only evaluated).
         config: :class:`TrainConfig` (defaults if None).
+        on_shape_residuals: called once with the (N, V, 3) T-pose residuals that a shape decoder is
+            learnt from (:func:`shape_residuals`), e.g. to train several spiral decoders on them
+            (``benchmarks/blsm_spiral_fig4.py``).
 
     Returns:
         (model data accepted by :func:`blsm.io.save_model`, report dict: explained variances,
@@ -336,6 +355,12 @@ def learn_model(
     mdl, st_all.bone = _bone_basis(run, scales_all, ridx)
     st_rest = _correctives(run, mdl, targets_all[ridx], st_all.take(ridx))
     st_rest, unposed = _shape_basis(run, mdl, targets_all[ridx], st_rest)
+    if cfg.shape.decoder == "spiral" or on_shape_residuals is not None:
+        resid = shape_residuals(model, mdl, unposed, st_rest, cfg.shape.symmetry)
+        if on_shape_residuals is not None:
+            on_shape_residuals(resid)
+        if cfg.shape.decoder == "spiral":
+            run.spiral = _spiral_decoder(run, resid, len(rest))
 
     # 5. Blend weights (Eqs. 5.30, 5.31) from the posed training registrations.
     if cfg.weights.enabled and posed:
@@ -356,6 +381,9 @@ def learn_model(
         _log(f"held-out ({len(test)} registrations): {float(terr.mean()):.2f} mm")
     run.report["seconds"]["total"] = round(time.perf_counter() - t_all, 2)
     data = _assemble(initial_model, mdl, st_rest, run.report, cfg)
+    if run.spiral is not None:
+        data.arrays.update(run.spiral[0])
+        data.meta["shape_decoder"] = run.spiral[1]
     return data, run.report
 
 
@@ -457,6 +485,34 @@ def _shape_basis(
     _log(f"shape PCA ({ks} components, {100 * float(sexpl.sum()):.1f} % of residual variance): "
          f"training error {err:.2f} mm")
     return st_rest, unposed
+
+
+def shape_residuals(model, mdl: LearnedModel, unposed: torch.Tensor, st_rest: FitParams,
+                    symmetry: str) -> torch.Tensor:
+    """The T-pose residuals V_D^n (Eq. 5.28) of step 4 relative to the final template (``mdl.template``
+    holds the PCA mean by then), symmetrised or mirror-augmented as ``symmetry`` says (as the PCA
+    saw them). (N, V, 3) metres (2N with ``augment``: the mirror images after the originals)."""
+    resid = unposed - templates(mdl, dataclasses.replace(st_rest, shape=None), None, None)
+    sym = symmetrize_vertices(resid.double(), model.vertex_mirror).float()
+    return sym if symmetry == "symmetrize" else torch.cat([resid, 2 * sym - resid])
+
+
+def _spiral_decoder(run: _Run, resid: torch.Tensor, n: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """4b. BLSM-spiral (Eqs. 11, 17): the auto-decoder on :func:`shape_residuals`; the first ``n``
+    codes are the training bodies'. Returns the model-file arrays and metadata."""
+    from blsm.spiral.autodecoder import train_auto_decoder
+    from blsm.spiral.hierarchy import body_hierarchy
+    from blsm.spiral.shape import decoder_arrays
+
+    cfg = run.cfg.shape.spiral
+    ops = body_hierarchy(run.model, cfg.settings())
+    _log(f"spiral decoder: latent {cfg.latent}, levels {ops.sizes}, {len(resid)} bodies, {cfg.epochs} epochs")
+    dec, codes, rep = train_auto_decoder(resid, ops, cfg)
+    run.report["spiral"] = rep
+    run.lap("spiral")
+    _log(f"spiral decoder: training error {rep['train_error_mm']:.2f} mm on the residuals "
+         f"({run.report['seconds']['spiral']:.1f} s)")
+    return decoder_arrays(dec, ops, codes[:n], rep)
 
 
 def _learn_weights(model, mdl, metas, rest, posed, st_rest, unposed, targets_all, st_all, cfg, report, gen) -> torch.Tensor:
@@ -573,6 +629,7 @@ def _assemble(initial_model, mdl: LearnedModel, st_rest: FitParams, report: dict
     }
     meta = dict(src.meta)
     meta.pop("build_report", None)
+    meta.pop("shape_decoder", None)  # an initial BLSM-spiral's decoder is not carried over (learn_model adds its own)
     meta["name"] = "blsm-learned"
     meta["built"] = datetime.date.today().isoformat()
     meta["train_report"] = report

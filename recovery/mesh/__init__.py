@@ -1,3 +1,2 @@
-"""Mesh operators precomputed once on the BLSM template: spiral sequences (:mod:`.spiral_sequences`),
-down- and up-sampling (:mod:`.sampling`), and everything for a model file with its cache
-(:mod:`.operators`)."""
+"""Mesh operators of a BLSM model file with their cache (:mod:`.operators`): the hierarchy of
+:mod:`blsm.spiral.hierarchy` (spiral sequences, down- and up-sampling) and a keypoint regressor."""

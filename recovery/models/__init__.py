@@ -1,4 +1,4 @@
 """Networks of the recovery models: image backbones (:mod:`.backbones`), HMR's regression head
-(:mod:`.heads`), HMR-BLSM (:mod:`.hmr`), the pose discriminator (:mod:`.discriminator`), the spiral
-convolution (:mod:`.spiral_conv`), the mesh autoencoder (:mod:`.mesh_ae`) and image-to-mesh network
-(:mod:`.mesh_net`), the PCA baseline (:mod:`.pca`) and the losses (:mod:`.losses`)."""
+(:mod:`.heads`), HMR-BLSM (:mod:`.hmr`), the pose discriminator (:mod:`.discriminator`), the mesh
+autoencoder (:mod:`.mesh_ae`; its convolution and decoder are in :mod:`blsm.spiral`) and image-to-mesh
+network (:mod:`.mesh_net`), the PCA baseline (:mod:`.pca`) and the losses (:mod:`.losses`)."""

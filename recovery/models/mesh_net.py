@@ -3,7 +3,7 @@
 Backbone features -> two FC layers (ReLU) -> the 1024-D image feature; from it
 
 - the **latent code regressor**: one FC layer to the 128-D code, decoded into the body-frame
-  vertices by the spiral decoder (:class:`recovery.models.mesh_ae.SpiralDecoder`) and the
+  vertices by the spiral decoder (:class:`blsm.spiral.decoder.SpiralDecoder`) and the
   training meshes' normalisation;
 - the **camera branch**: one FC layer to 7 values, a quaternion ``(w, x, y, z)`` rotating the body
   frame into the camera frame and the weak-perspective ``(s, tx, ty)`` of :mod:`recovery.utils.geometry`
@@ -24,9 +24,9 @@ import torch
 from kornia.geometry.conversions import quaternion_to_rotation_matrix, rotation_matrix_to_quaternion
 from torch import nn
 
-from recovery.mesh.operators import MeshOperators
+from blsm.spiral.decoder import MeshNormalizer, SpiralDecoder
+from blsm.spiral.hierarchy import MeshOperators
 from recovery.models.backbones import build_backbone
-from recovery.models.mesh_ae import MeshNormalizer, SpiralDecoder
 from recovery.utils.geometry import UPRIGHT_FACING_CAMERA
 
 

@@ -14,11 +14,11 @@ import torch
 from torch import nn
 
 import blsm
+from blsm.spiral.hierarchy import MeshOperators
 from recovery.config import RecoveryConfig, model_file
 from recovery.datasets.loaders import mesh_loaders
 from recovery.datasets.meshes import body_frame_vertices
 from recovery.eval.metrics import vertex_error_mm
-from recovery.mesh.operators import MeshOperators
 from recovery.models import losses as L
 from recovery.models.mesh_ae import MeshAutoencoder
 from recovery.tasks.base import TaskSpec, checkpoint_meta, mesh_statistics, set_threads

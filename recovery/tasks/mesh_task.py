@@ -24,6 +24,7 @@ import torch
 from torch import nn
 
 import blsm
+from blsm.spiral.hierarchy import MeshOperators
 from recovery.checkpoint import read_checkpoint
 from recovery.config import RecoveryConfig, model_file
 from recovery.datasets.cache import CropCache
@@ -31,7 +32,7 @@ from recovery.datasets.meshes import body_frame_vertices
 from recovery.eval import metrics as M
 from recovery.eval.joints import PELVIS, indices
 from recovery.eval.metrics import vertex_error_mm
-from recovery.mesh.operators import MeshOperators, mesh_operators
+from recovery.mesh.operators import mesh_operators
 from recovery.models import losses as L
 from recovery.models.mesh_ae import MeshAutoencoder
 from recovery.models.mesh_net import MeshOutput, MeshRegressor, weak_perspective

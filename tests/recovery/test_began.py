@@ -25,6 +25,7 @@ def test_k_update_follows_eq_4_12_step_by_step():
 def test_a_began_training_step(cache_dir, model, tmp_path):
     """One step of the image-to-mesh network with the BEGAN discriminator: k moves by Eq. 4.12 with
     the step's logged L_AE values, and the discriminator's weights change."""
+    from blsm.spiral.hierarchy import MeshOpsSettings
     from recovery.config import (
         BeganConfig,
         DataConfig,
@@ -37,7 +38,7 @@ def test_a_began_training_step(cache_dir, model, tmp_path):
     )
     from recovery.datasets.augment import BatchAugment
     from recovery.datasets.cache import CropCache
-    from recovery.mesh.operators import MeshOpsSettings, mesh_operators
+    from recovery.mesh.operators import mesh_operators
     from recovery.tasks.mesh_task import MeshTask
 
     settings = MeshOpsSettings(regressor_samples=24, regressor_support=32)

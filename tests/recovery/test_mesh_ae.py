@@ -10,8 +10,9 @@ import pytest
 import torch
 from recovery_helpers import sphere
 
-from recovery.mesh.operators import MeshOpsSettings, mesh_hierarchy, mesh_operators
-from recovery.mesh.sampling import Level
+from blsm.spiral.hierarchy import MeshOpsSettings, mesh_hierarchy
+from blsm.spiral.sampling import Level
+from recovery.mesh.operators import mesh_operators
 from recovery.models.mesh_ae import MeshAutoencoder
 
 SMALL = MeshOpsSettings(factors=(4, 2), rings=(2, 1), lengths=(19, 7))
@@ -118,7 +119,7 @@ def test_operator_cache_is_keyed_by_the_model_file(tmp_path, model):
 
 def test_operator_cache_key_does_not_depend_on_number_types():
     """A checkpoint's config gives factors as floats (4.0), YAML as ints (4): the same operators, one cache."""
-    from recovery.mesh.operators import MeshOpsSettings, _key
+    from recovery.mesh.operators import _key
 
     a = MeshOpsSettings(factors=(4, 2, 2, 2), rings=(2, 1, 1, 1), lengths=(25, 9, 9, 9))
     b = MeshOpsSettings(factors=(4.0, 2.0, 2.0, 2.0), rings=(2.0, 1, 1, 1), lengths=(25, 9, 9, 9.0))

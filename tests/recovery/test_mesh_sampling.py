@@ -1,4 +1,4 @@
-"""recovery.mesh.sampling and the pooling modules: Q^d / Q^u of thesis Sec. 4.3.2."""
+"""blsm.spiral.sampling and the pooling modules: Q^d / Q^u of thesis Sec. 4.3.2."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 import torch
 from recovery_helpers import sphere
 
-from recovery.mesh.sampling import build_levels, decimate, upsampling
-from recovery.models.spiral_conv import Pool, Unpool
+from blsm.spiral.conv import Pool, Unpool
+from blsm.spiral.sampling import build_levels, decimate, upsampling
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,12 @@
-"""recovery.models.spiral_conv: Eq. 4.4's convolution on the spirals of recovery.mesh.spiral_sequences."""
+"""blsm.spiral.conv: Eq. 4.4's convolution on the spirals of blsm.spiral.sequences."""
 
 from __future__ import annotations
 
 import torch
 from recovery_helpers import sphere
 
-from recovery.mesh.spiral_sequences import spiral_sequences
-from recovery.models.spiral_conv import SpiralConv, spiral_conv, spiral_gather
+from blsm.spiral.conv import SpiralConv, spiral_conv, spiral_gather
+from blsm.spiral.sequences import spiral_sequences
 
 
 def test_spiral_conv_matches_the_gathered_reference_and_pads_with_zeros():

@@ -1,4 +1,4 @@
-"""recovery.mesh.spiral_sequences: Eq. 4.3's spirals."""
+"""blsm.spiral.sequences: Eq. 4.3's spirals."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from recovery_helpers import sphere
 
-from recovery.mesh.spiral_sequences import spiral_sequences, vertex_fans
+from blsm.spiral.sequences import spiral_sequences, vertex_fans
 
 
 def grid(n: int = 5, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

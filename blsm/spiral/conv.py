@@ -1,7 +1,7 @@
 """Spiral convolution and mesh pooling (thesis Eqs. 4.2-4.4, Sec. 4.3.2; Neural3DMM, spiralnet++).
 
-The operators (spiral indices, ``Q^d``, ``Q^u``) are precomputed once
-(:mod:`recovery.mesh.operators`); the modules only hold them as buffers and apply them.
+The operators (spiral indices, ``Q^d``, ``Q^u``) are precomputed once (:mod:`blsm.spiral.hierarchy`);
+the modules only hold them as buffers and apply them.
 
 Layout: the modules take **vertex-major** features ``(N, B, C)``. Gathering a vertex's neighbours
 then copies contiguous ``B x C`` blocks instead of ``C`` floats, which on a CPU is what a spiral

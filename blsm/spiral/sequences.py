@@ -11,7 +11,7 @@ construction depends on vertex indices (only on the closest neighbour and the wi
 consistent relabelling of the template relabels the spirals.
 
 Every spiral is truncated or padded to a fixed ``length`` per level (spiralnet++ truncates; padding
-uses ``-1``, which :class:`recovery.models.spiral_conv.SpiralConv` reads as a zero feature).
+uses ``-1``, which :class:`blsm.spiral.conv.SpiralConv` reads as a zero feature).
 """
 
 from __future__ import annotations
