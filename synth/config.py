@@ -64,6 +64,22 @@ class OutputConfig:
 
 
 @dataclass(frozen=True)
+class LabelsConfig:
+    """Optional labels (off by default). ``topology``: a model file from ``blsm reparam``; every
+    sample then gets ``vertices_<topology_name>.npy.gz``, the people's bodies in that topology
+    (:mod:`synth.topology`)."""
+
+    topology: str = ""
+    topology_name: str = "topo2"
+
+    def __post_init__(self) -> None:
+        import re
+
+        if not re.match(r"^[a-z0-9_]{1,32}$", self.topology_name):
+            raise ValueError(f"labels.topology_name must be 1-32 of a-z, 0-9, _; got {self.topology_name!r}")
+
+
+@dataclass(frozen=True)
 class SubjectsConfig:
     """Who is rendered: ``anny`` (``count`` people sampled from Anny) or ``folder`` (user scans in
     the folder format of :mod:`synth.scans`, path relative to the working directory).
@@ -506,8 +522,11 @@ class GeneratorConfig:
     output: OutputConfig = field(default_factory=OutputConfig)
     engine: EngineConfig = field(default_factory=EngineConfig)
     sequence: SequenceConfig = field(default_factory=SequenceConfig)
+    labels: LabelsConfig = field(default_factory=LabelsConfig)
 
     def __post_init__(self) -> None:
+        if self.labels.topology and self.pipeline == "raw":
+            raise ValueError("labels.topology needs a posable pipeline (rigged or blsm), not raw")
         if self.seed < 0:
             raise ValueError(f"seed must be non-negative, got {self.seed}")
         if self.num < 1:

@@ -28,6 +28,10 @@ Every sample (key ``f"{index:09d}"``) has these members, all made by one render 
                     :mod:`synth.garments`).
 ==================  =============================================================================
 
+With ``labels.topology`` (off by default) a sample also has ``vertices_<name>.npy.gz``: (P, V2, 3)
+float32 (gzip of ``numpy.save``), the people's bodies in a second mesh topology, world metres, in
+mask order (:mod:`synth.topology`; docs/reparam.md).
+
 Every label pixel is the first hit of the ray through the pixel centre ``(u + 0.5, v + 0.5)``: the
 pixel whose top-left corner is ``(u, v)`` covers ``[u, u + 1) x [v, v + 1)`` in the OpenCV image
 coordinates used by ``K``. The RGB is the same scene with the same camera rendered with many samples

@@ -449,6 +449,8 @@ def cfg_json(cfg: GeneratorConfig) -> dict:
     d = json.loads(json.dumps(asdict(cfg)))
     if not cfg.sequence.enabled:  # single images: the manifests of before
         d.pop("sequence")
+    if not cfg.labels.topology:  # no second topology: the manifests of before
+        d.pop("labels")
     b = cfg.background
     if b.kind != "images" or not bg.read_horizons(b.folder):
         d["background"].pop("align_horizon")

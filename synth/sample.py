@@ -347,6 +347,11 @@ class SampleMaker:
         self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, Rig] = {}
         self._renderers: dict[tuple, PeopleRenderer] = {}
+        self.topology = None  # labels.topology: the people's vertices in a second topology (synth.topology)
+        if cfg.labels.topology:
+            from synth.topology import Topology
+
+            self.topology = Topology(cfg.labels.topology, cfg.labels.topology_name, m)
 
     def rig(self, si: int) -> Rig:
         """Subject ``si``'s :class:`Rig` (made on first use)."""
@@ -603,7 +608,15 @@ class SampleMaker:
             "bones.png": fmt.encode_png(labels["bones"], fmt.BONE_PALETTE),
             "depth.exr": fmt.encode_exr(labels["depth"]),
             "corr.npy.gz": fmt.encode_npy_gz(labels["corr"]),
+            **({} if self.topology is None else self._topology_member(people)),
         }
+
+    def _topology_member(self, people: list[Person]) -> dict[str, bytes]:
+        """``vertices_<name>.npy.gz``: (P, V2, 3) the people's bodies in ``labels.topology`` (:mod:`synth.topology`)."""
+        from synth.topology import member
+
+        v = [self.topology.vertices(self.subjects[p.si].registration, p.pose, p.global_orient, p.transl) for p in people]
+        return {member(self.topology.name): fmt.encode_npy_gz(np.stack(v))}
 
     def _person_doc(self, p: Person, lp: dict[str, Any]) -> dict[str, Any]:
         """Person ``p``'s entry of the sample's ``people`` (``lp``: its labels from the render)."""

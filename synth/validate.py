@@ -26,6 +26,8 @@ Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLS
   surface facing a 600 mm lens 60 m away in a 128 px image, more where the surface is seen edge-on),
   at the stored depth (``DEPTH_M``) (:func:`check_correspondences`); parts and bones agree with the
   mask;
+- ``vertices_<name>`` (with ``labels.topology``): each person's body rebuilt by the reparameterised
+  model from the stored parameters (:func:`check_topology`, within ``TOPOLOGY_M``);
 - clothes: the labels are the body's (keypoints rebuilt from the body alone), the mask is the
   projection of body, hair and clothes, and a pixel on the cloth layer has the bone of the body face
   under it (:func:`check_cloth_bones`).
@@ -48,6 +50,7 @@ from synth.shards import FORMAT as SHARDS_FORMAT
 from synth.shards import MANIFEST, read_shard
 
 DEPTH_M = 1e-4
+TOPOLOGY_M = 1e-4  # a second topology's vertex rebuilt from the 6-decimal JSON parameters, as keypoints_3d
 EDGE_PIXELS = 0.002  # fraction of the foreground area (at least 2 pixels)
 
 
@@ -86,6 +89,12 @@ class MeshRebuilder:
         self.regions: dict[tuple, dict[str, np.ndarray]] = {}  # a sequence person's contact regions
         self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
         self.parents = subdivide(self.model.faces.numpy()) if self.subdivide else None
+        labels = config.get("labels") or {}
+        self.topology = None  # labels.topology (synth.topology): the people's vertices in a second topology
+        if labels.get("topology"):
+            from synth.topology import Topology
+
+            self.topology = Topology(labels["topology"], labels.get("topology_name", "topo2"), self.model)
 
     def mesh(self, person: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sample person ``person``'s body and hair: (V, 3) float64 vertices, (F, 3) faces (the
@@ -291,6 +300,22 @@ def check_cloth_bones(corr: np.ndarray, bones: np.ndarray, sel: np.ndarray, firs
     return [f"{bad} cloth pixels do not carry the bone of the body under them"] if bad else []
 
 
+def check_topology(rebuild: MeshRebuilder, person: dict[str, Any], sample: dict[str, Any], i: int) -> list[str]:
+    """Person ``i``'s ``vertices_<name>`` rebuilt by the reparameterised model from the stored parameters
+    (:mod:`synth.topology`), within ``TOPOLOGY_M``; a member without ``labels.topology`` is an error."""
+    names = [k for k in sample if k.startswith("vertices_")]
+    if rebuild.topology is None:
+        return [f"{names[0]} present but the config has no labels.topology"] if names and i == 0 else []
+    key = f"vertices_{rebuild.topology.name}"
+    got = sample.get(key)
+    if got is None or got.ndim != 3 or i >= len(got) or got.shape[1:] != (rebuild.topology.model.num_vertices, 3):
+        return [f"{key} missing or not (P, {rebuild.topology.model.num_vertices}, 3)"]
+    b = person["blsm"]
+    want = rebuild.topology.vertices(rebuild.subjects[person["subject"]].registration, *(np.asarray(b[k], np.float32) for k in ("pose", "global_orient", "transl")))
+    err = float(np.abs(got[i] - want).max())
+    return [f"{key} differs from the rebuilt body by {err * 1000:.3f} mm"] if err > TOPOLOGY_M else []
+
+
 def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, bone_to_part: np.ndarray,
                   rep: Report) -> dict[str, Any] | None:
     """Check one sample (module docstring); return its labels (None when they cannot be read)."""
@@ -340,6 +365,8 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
         elif p["box"] is not None or vis.any():
             rep.fail(pw, "no mask pixels but a box or visible keypoints")
         verts, faces, kp_re = rebuild.mesh(p)
+        for msg in check_topology(rebuild, p, s, i):
+            rep.fail(pw, msg)
         if np.abs(kp_re - kp3).max() > 1e-4:
             rep.fail(pw, f"keypoints_3d differ from the rebuilt body by {np.abs(kp_re - kp3).max() * 1000:.2f} mm")
         if "contact" in p:
