@@ -27,6 +27,8 @@ HELP = {
     "train": "the whole run: population, registration, learning, evaluation (one config)",
     "evaluate": "held-out errors of BLSM-linear and SMPL-reimpl against the number of coefficients",
     "train-smpl": "train the SMPL-reimpl baseline on registrations (Sec. 5.5.1)",
+    "reparam": "reparameterise a model to a new template topology (thesis ch. 3, Eqs. 3.5-3.7)",
+    "scan-keypoints": "3D keypoints of a scan from multi-view renders and MediaPipe (Sec. 6.3.1)",
 }
 
 
@@ -75,6 +77,14 @@ def add_parsers(sub: Any) -> None:
     reg.add_argument("--model", type=Path, help="BLSM model file (default: the packaged one)")
     reg.add_argument("--batch", type=int, default=4, help="scans registered together (default 4)")
     reg.add_argument("--overwrite", action="store_true", help="replace existing registration files")
+    reg.add_argument("--markerless", action="store_true", help="register from detected 3D keypoints even when "
+                     "the scans have landmarks (thesis Sec. 6.3; scans without landmarks always are)")
+    reg.add_argument("--detector", default="mediapipe", choices=["mediapipe"], help="2D keypoint detector")
+    reg.add_argument("--views", type=int, default=18, help="rendered views per scan for the detector (18)")
+    reg.add_argument("--keypoint-config", type=Path, help="KeypointFitConfig YAML of the keypoint registration "
+                     "(Eqs. 6.4-6.6; default: its built-in values)")
+    reg.add_argument("--sequence", action="store_true", help="the scans (or the folder's scans, sorted by "
+                     "name) are frames of one subject: one bone and shape, poses smoothed in time (Eq. 6.4)")
     reg.set_defaults(func=command("register", cmd_register))
 
     learn = sub.add_parser(
@@ -113,6 +123,10 @@ def add_parsers(sub: Any) -> None:
     smpl.add_argument("--lm-iterations", type=int, default=25)
     smpl.add_argument("--out", required=True, help="output .npz")
     smpl.set_defaults(func=command("train-smpl", cmd_train_smpl))
+    from blsm.learn.reparam_cli import add_parser as add_reparam  # blsm reparam (thesis ch. 3)
+    add_reparam(sub, HELP["reparam"])
+    from blsm.learn.markerless import add_parser as add_scan_keypoints  # blsm scan-keypoints
+    add_scan_keypoints(sub, HELP["scan-keypoints"])
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -161,7 +175,9 @@ def cmd_register(args: argparse.Namespace) -> int:
     """``blsm register SCAN [SCAN ...] --out DIR``: one ``blsm-registration`` file per scan.
 
     A scan is a ``blsm-scan`` ``.npz`` or an OBJ / PLY / GLB mesh whose located landmarks are in
-    ``<stem>.landmarks.json`` beside it, or in ``--landmarks FILE`` (one scan only).
+    ``<stem>.landmarks.json`` beside it, or in ``--landmarks FILE`` (one scan only). Scans without
+    landmarks (or all, with ``--markerless``) are registered from detected 3D keypoints, and
+    ``--sequence`` registers the scans as frames of one subject (thesis Sec. 6.3).
     """
     import blsm
     from blsm.learn.landmark_fit import default_selection, read_landmark_definitions
@@ -185,22 +201,90 @@ def cmd_register(args: argparse.Namespace) -> int:
                          f"got {len(args.scans)} scans")
     if args.batch < 1:
         raise ValueError(f"--batch must be >= 1, got {args.batch}")
+    paths = [q for p in args.scans for q in (_scan_files(p) if p.is_dir() else [p])]
     jobs = []
-    for p in args.scans:
+    for p in paths:
         target = args.out / f"{p.stem}.npz"
         if target.exists() and not args.overwrite:
             raise ValueError(f"{target}: exists (use --overwrite to replace it)")
-        scan = load_scan(p, landmarks=args.landmarks, require_landmarks=True)
+        scan = load_scan(p, landmarks=args.landmarks, require_landmarks=False)
         scan.meta = {**(getattr(scan, "meta", None) or {})}
         scan.meta.setdefault("id", p.stem)
-        scan_data(scan, selection, str(p))  # fail fast, naming the file
-        jobs.append((scan, target))
+        if not (args.markerless or args.sequence) and scan.located.any():
+            scan_data(scan, selection, str(p))  # fail fast, naming the file
+        elif not scan.located.any() and getattr(scan, "colors", None) is None and not args.markerless:
+            raise ValueError(f"{p}: no landmarks located and no vertex colours to detect keypoints on "
+                             "(give --landmarks, or --markerless to use the untextured renders)")
+        jobs.append((scan, target, p))
+    if args.markerless or args.sequence or any(not s.located.any() for s, _, _ in jobs):
+        return _register_keypoints(model, jobs, cfg, selection, args)
     for i in range(0, len(jobs), args.batch):
         chunk = jobs[i : i + args.batch]
-        regs = register(model, [s for s, _ in chunk], cfg, selection=selection)
-        for reg, (_, target) in zip(regs, chunk, strict=True):
+        regs = register(model, [s for s, _, _ in chunk], cfg, selection=selection)
+        for reg, (_, target, _) in zip(regs, chunk, strict=True):
             save_registration(reg, target)
             print(f"wrote {target}", file=sys.stderr)
+    return 0
+
+
+def _scan_files(folder: Path) -> list[Path]:
+    """The scan files of a folder, sorted by name (the frames of a sequence)."""
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".npz", ".obj", ".ply", ".glb"))
+    if not files:
+        raise ValueError(f"{folder}: no scan files (.npz, .obj, .ply, .glb)")
+    return files
+
+
+def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namespace) -> int:
+    """Registration from keypoints (thesis Sec. 6.3): landmarks as keypoints where every scan has
+    them (and no ``--markerless``), else markerless keypoints (``blsm.learn.markerless``)."""
+    import numpy as np
+
+    from blsm.learn.keypoint_fit import load_keypoint_config
+    from blsm.learn.register import KeypointTargets, register_keypoints, scan_data
+    from blsm.learn.registrations import save_registration
+
+    if args.keypoint_config is not None:
+        load_keypoint_config(args.keypoint_config)  # fail before the detector runs
+
+    targets, sel = [], None
+    if not args.markerless and all(s.located.any() for s, _, _ in jobs):
+        sel = selection
+        for s, _, p in jobs:
+            targets.append(KeypointTargets(sel.names, scan_data(s, sel, str(p)).landmarks, np.ones(len(sel)),
+                                           {"source": "landmarks"}))
+    else:
+        from blsm.learn.markerless import MarkerlessConfig, scan_keypoints
+        from blsm.learn.multiview import ViewConfig
+        from blsm.pose2d.detectors import MediaPipeDetector
+
+        if args.views < 2:
+            raise ValueError(f"--views must be >= 2, got {args.views}")
+        mcfg = MarkerlessConfig(views=ViewConfig(views=args.views))
+        detector = MediaPipeDetector()
+        for s, _, p in jobs:
+            try:
+                k = scan_keypoints(s, detector, mcfg, str(p))
+            except ValueError as exc:  # name the scan even when the detector's setup failed
+                raise ValueError(str(exc) if str(p) in str(exc) else f"{p}: {exc}") from None
+            ok = np.isfinite(k.points).all(1)
+            if ok.sum() < 4:
+                raise ValueError(f"{p}: only {int(ok.sum())} keypoints triangulated (need >= 4)")
+            targets.append(KeypointTargets(list(k.names), k.points, k.confidence, {
+                "source": "markerless", "detector": k.detector, "views": k.views,
+                "views_with_person": k.views_with_person, "view_failure_rate": 1 - k.views_with_person / k.views,
+                "swapped_views": int(k.per_view.swapped.sum()), "keypoint_views": k.num_views.tolist()}))
+    scans = [s for s, _, _ in jobs]
+    kcfg = load_keypoint_config(args.keypoint_config) if args.keypoint_config is not None else None
+    if args.sequence:
+        regs = register_keypoints(model, scans, targets, cfg, kcfg, sequence=True, selection=sel)
+    else:
+        regs = [r for i in range(0, len(jobs), args.batch)
+                for r in register_keypoints(model, scans[i:i + args.batch], targets[i:i + args.batch], cfg,
+                                            kcfg, selection=sel)]
+    for reg, (_, target, _) in zip(regs, jobs, strict=True):
+        save_registration(reg, target)
+        print(f"wrote {target}", file=sys.stderr)
     return 0
 
 

@@ -484,9 +484,9 @@ def contact_sheet(
     return save_png(np.asarray(sheet), path)
 
 
-def add_parser(sub: Any) -> None:
+def add_parser(sub: Any, help_text: str) -> None:
     """``blsm scan-keypoints SCAN --out JSON``: the markerless keypoints of one scan (for debugging)."""
-    p = sub.add_parser("scan-keypoints", help="3D keypoints of a scan from multi-view renders and MediaPipe (Sec. 6.3.1)")
+    p = sub.add_parser("scan-keypoints", help=help_text)
     p.add_argument("scan", type=Path, help="a blsm-scan .npz or an OBJ / PLY / GLB mesh (vertex colours used)")
     p.add_argument("--out", type=Path, required=True, help="JSON file of the keypoints")
     p.add_argument("--views", type=int, default=ViewConfig.views)

@@ -1,4 +1,4 @@
-"""Registering the BLSM template to scans (thesis Sec. 5.4.1, Eqs. 5.13-5.25): the driver.
+"""Registering the BLSM template to scans (thesis Sec. 5.4.1, Eqs. 5.13-5.25; Sec. 6.3): the driver.
 
 Two stages per scan, batched over scans:
 
@@ -8,6 +8,13 @@ Two stages per scan, batched over scans:
    the scan surface (engineering addition, ``surface_rounds``).
 2. :func:`blsm.learn.surface_fit.refine` (Eqs. 5.14-5.25): free per-vertex displacements V_D in the
    T-pose frame, ``S^ = LBS(V_T + V_D, T(s, theta))`` with the stage-1 skeleton held fixed.
+
+Without landmarks, :func:`register_keypoints` (thesis Sec. 6.3) starts from 3D keypoints instead:
+Eq. 6.4 (:func:`blsm.learn.keypoint_fit.fit_keypoints`), a grid search of the hands' orientation
+(:func:`blsm.learn.keypoint_fit.search_hands`, an engineering addition), Eqs. 6.5-6.6
+(:func:`blsm.learn.keypoint_fit.fit_shape`), then the same free-form stage 2 (Eqs. 5.14-5.25, used
+instead of Eqs. 6.8-6.9) with no landmark term, on the scan cropped to the fitted body. Frames of one
+subject (a 4D sequence) share the bone and shape coefficients and are smoothed in time.
 
 The settings are a :class:`blsm.learn.register_config.RegisterConfig`; the results are
 :class:`blsm.learn.registrations.Registration` records (``blsm-registration`` files).
@@ -34,6 +41,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from blsm.learn.keypoint_fit import (
+    KeypointFitConfig,
+    KeypointSet,
+    fit_keypoints,
+    fit_shape,
+    near_body,
+    search_hands,
+)  # fmt: skip
 from blsm.learn.landmark_fit import LandmarkSelection, Stage1, default_selection, fit_landmarks
 from blsm.learn.posing import pose
 from blsm.learn.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
@@ -43,6 +58,8 @@ from blsm.learn.surface_fit import ScanData, fit_surface, refine
 
 __all__ = [
     "DEFAULT_CONFIG",
+    "KeypointTargets",
+    "register_keypoints",
     "LandmarkSelection",
     "RegisterConfig",
     "Stage1",
@@ -193,3 +210,146 @@ def st1_vertices(model, st1: Stage1, n: int) -> np.ndarray:
         tmpl = model.template if st1.shape_offsets is None else model.template + st1.shape_offsets[n]
         return pose(model, tmpl, bone_scales=st1.bone_scales[n:n + 1], angles=st1.angles[n:n + 1],
                     global_orient=st1.global_orient[n:n + 1], transl=st1.transl[n:n + 1]).vertices[0].numpy()
+
+
+# ------------------------------------------------------------------------------------------------
+# Registration from keypoints (thesis Sec. 6.3)
+
+
+@dataclasses.dataclass
+class KeypointTargets:
+    """3D keypoints of one scan (e.g. ``blsm.learn.markerless.ScanKeypoints``, or landmarks).
+
+    Attributes:
+        names: K names, of ``model.keypoint_names`` (or of the landmark selection with ``landmarks``).
+        points: (K, 3) metres, NaN rows = not found. confidence: (K,) in [0, 1].
+        info: JSON-able record for the registration's meta (views, failures, ...).
+    """
+
+    names: list[str]
+    points: np.ndarray
+    confidence: np.ndarray
+    info: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+
+def _stack_targets(model, targets: Sequence[KeypointTargets], selection: LandmarkSelection | None):
+    """The union of the keypoint names as one :class:`KeypointSet` and (T, K, 3), (T, K) tensors."""
+    names: list[str] = []
+    for t in targets:
+        names += [n for n in t.names if n not in names]
+    if selection is not None:
+        order = [n for n in selection.names if n in names]
+        idx = [selection.names.index(n) for n in order]
+        kps = KeypointSet.of_selection(LandmarkSelection(order, selection.vertices[idx], selection.bary[idx]))
+    else:
+        kps = KeypointSet.of_model(model, names)
+    pts = np.full((len(targets), len(kps), 3), np.nan)
+    conf = np.zeros((len(targets), len(kps)))
+    for i, t in enumerate(targets):
+        look = {n: k for k, n in enumerate(t.names)}
+        for k, n in enumerate(kps.names):
+            if n in look:
+                pts[i, k] = np.asarray(t.points, np.float64)[look[n]]
+                conf[i, k] = float(np.asarray(t.confidence)[look[n]])
+    dtype = model.template.dtype
+    return kps, torch.as_tensor(pts, dtype=dtype), torch.as_tensor(conf, dtype=dtype)
+
+
+def _cropped(scan: Any, body: np.ndarray, distance: float, max_area: float) -> ScanData:
+    """The scan's triangles with all corners within ``distance`` of the fitted ``body`` (V, 3) and no
+    larger than ``max_area`` (0: any), as :class:`ScanData` without landmarks (stage 2's input)."""
+    v = np.asarray(scan.vertices, np.float64)
+    f = np.asarray(scan.faces, np.int64)
+    keep = near_body(v, body, distance)[f].all(1)
+    if max_area > 0:
+        tri = v[f]
+        keep &= 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1) <= max_area
+    if keep.sum() < 100:
+        keep[:] = True  # nothing near the body: the fit failed; keep the scan rather than nothing
+    return ScanData(v, f[keep], np.zeros((0, 3)))
+
+
+def register_keypoints(
+    model,
+    scans: Sequence[Any],
+    targets: Sequence[KeypointTargets],
+    config: RegisterConfig | None = None,
+    keypoint_config: KeypointFitConfig | None = None,
+    sequence: bool = False,
+    selection: LandmarkSelection | None = None,
+    crop_distance: float = 0.03,
+    progress: bool = True,
+) -> list[Registration]:
+    """Register scans from 3D keypoints (thesis Sec. 6.3): Eq. 6.4, Eqs. 6.5-6.6, then Eqs. 5.14-5.25.
+
+    Args:
+        model: a :class:`blsm.BLSM`.
+        scans: T scans (``vertices``, ``faces``, ``meta``; ``gt_points`` when known).
+        targets: their keypoints, one :class:`KeypointTargets` per scan.
+        config: stage-2 settings (:class:`RegisterConfig`; its landmark weight is set to 0 for detector
+            keypoints, kept for landmarks).
+        keypoint_config: settings of Eqs. 6.4-6.6.
+        sequence: the scans are frames of one subject in time order: one c_b and c_s, poses smoothed
+            (Eq. 6.4's S); else every scan is its own subject.
+        selection: the targets are landmarks of this selection (A_lm), not model keypoints.
+        crop_distance: stage 2 sees only scan triangles within this distance of the Eq. 6.5 body
+            (metres), so that a stool or floor markers in the scan do not pull the surface.
+        progress: print progress lines on stderr.
+
+    Returns:
+        One :class:`Registration` per scan; the meta records the keypoints and the shared shape.
+    """
+    cfg = config or RegisterConfig()
+    kcfg = keypoint_config or KeypointFitConfig()
+    if len(scans) != len(targets) or not scans:
+        raise ValueError(f"need one keypoint set per scan, got {len(scans)} scans and {len(targets)} sets")
+    log = (lambda s: print(s, file=sys.stderr, flush=True)) if progress else None
+    kps, pts, conf = _stack_targets(model, targets, selection)
+    groups = torch.zeros(len(scans), dtype=torch.long) if sequence else torch.arange(len(scans))
+    t0 = time.perf_counter()
+    st_kp = fit_keypoints(model, kps, pts, conf, groups, kcfg)
+    t1 = time.perf_counter()
+    if log:
+        log(f"Eq. 6.4: {len(scans)} frames, keypoint rms {[round(float(e) * 1000, 1) for e in st_kp.keypoint_error]} mm, "
+            f"{t1 - t0:.1f} s")
+    raw = [(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64)) for s in scans]
+    if selection is None:  # detector keypoints say nothing of the hands' orientation
+        st_kp = search_hands(model, st_kp, raw)
+    st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)
+    bodies = st_sh.vertices(model).double().numpy()
+    data = [_cropped(s, bodies[n], crop_distance, kcfg.max_triangle_area) for n, s in enumerate(scans)]
+    if selection is not None:  # landmarks (surface points): stage 2 keeps Eq. 5.15's landmark term
+        sub = LandmarkSelection(kps.names, kps.vertices, kps.bary)
+        data = [ScanData(d.vertices, d.faces, pts[n].double().numpy()) for n, d in enumerate(data)]
+        cfg2 = cfg
+    else:  # detector keypoints are joints and biased points: no landmark term (Eq. 6.8)
+        sub = LandmarkSelection([], torch.zeros(0, 3, dtype=torch.long), torch.zeros(0, 3))
+        cfg2 = dataclasses.replace(cfg, lambda_lm=0.0)
+    t2 = time.perf_counter()
+    v_d, s_hat, stats = refine(model, data, st_sh.stage1(model), sub, cfg2, log)
+    t3 = time.perf_counter()
+    if log:
+        log(f"Eqs. 6.5-6.6: {t2 - t1:.1f} s; stage 2: {cfg.iterations} iterations, {t3 - t2:.1f} s")
+    regs = []
+    for n, s in enumerate(scans):
+        reg = _registration(model, s, n, cfg2, st_kp.stage1(model), st_sh.stage1(model), (v_d, s_hat, stats),
+                            (t3 - t0) / len(scans))
+        g = int(groups[n])
+        reg.meta.update(
+            method="keypoints (thesis Sec. 6.3)", sequence=bool(sequence), frame=n,
+            keypoint_names=kps.names, keypoints=[[None if not np.isfinite(c) else round(float(c), 5) for c in p]
+                                                 for p in pts[n].tolist()],
+            keypoint_confidence=[round(float(c), 4) for c in conf[n]],
+            keypoint_rms_mm=float(st_kp.keypoint_error[n]) * 1000,
+            shape_keypoint_rms_mm=float(st_sh.keypoint_error[n]) * 1000,
+            bone_coeffs=st_sh.bone[g].tolist(), shape_coeffs=st_sh.shape[g].tolist(),
+            keypoint_config=dataclasses.asdict(kcfg), keypoints_info=targets[n].info,
+        )
+        gt = getattr(s, "gt_points", None)
+        if gt is not None and np.asarray(gt).shape == (model.num_vertices, 3):
+            reg.meta["keypoint_fit_error_mean_mm"] = correspondence_error(
+                Registration(st1_vertices(model, st_kp.stage1(model), n), *([np.zeros(1)] * 5)), gt)[0]
+        for k in ("stage1_landmark_rms_mm", "surface_fit_landmark_rms_mm", "landmark_rms_mm"):
+            reg.meta.pop(k, None)
+        regs.append(reg)
+    return regs

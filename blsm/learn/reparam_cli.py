@@ -16,13 +16,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-HELP = "reparameterise a model to a new template topology (thesis ch. 3, Eqs. 3.5-3.7)"
 
-
-def add_parser(sub: Any) -> None:
-    """Add ``blsm reparam`` to ``blsm``'s sub-commands."""
+def add_parser(sub: Any, help_text: str) -> None:
+    """Add ``blsm reparam`` to ``blsm``'s sub-commands (``help_text``: its line in ``blsm --help``)."""
     p = sub.add_parser(
-        "reparam", help=HELP,
+        "reparam", help=help_text,
         description="Reparameterise a BLSM model to a new template (thesis ch. 3): vertex-to-surface "
                     "correspondences W (Sec. 3.3.2), shape space (Eq. 3.5), bone correctives (Eq. 3.6), "
                     "blend weights (Eq. 3.7); joints and keypoints carried over. See docs/reparam.md.",

@@ -18,6 +18,8 @@ EXAMPLES = {
     "train": ["c.yaml", "--out", "m.npz"],
     "evaluate": ["--registrations", "r"],
     "train-smpl": ["--registrations", "r", "--out", "s.npz"],
+    "reparam": ["default", "t.obj", "--out", "m.npz"],
+    "scan-keypoints": ["s.npz", "--out", "k.json"],
 }
 
 

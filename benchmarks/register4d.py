@@ -1,0 +1,165 @@
+"""Registration from keypoints (thesis Sec. 6.3): a 4D sequence registered together vs frame by frame,
+and single held-out scans, against the true correspondence (``gt_points``). See docs/markerless.md.
+
+    python benchmarks/register4d.py sequence --clip out/motions/002_01.npz --keypoints truth --out out/register4d
+    python benchmarks/register4d.py scans SCAN.npz [...] --keypoints truth --out out/register4d
+
+``--keypoints truth``: the model's keypoints of the true body plus detector-like errors
+(:func:`blsm.learn.sequence_scans.perturb_keypoints`: 2 cm noise, 10 % dropouts, a left/right swap in
+10 % of the frames); ``landmarks``: the scans' 74 landmarks (5 mm noise) as keypoints (A_lm);
+``mediapipe``: ``blsm.learn.markerless.scan_keypoints`` (rendered views, MediaPipe, Eq. 6.3);
+``baseline``: the landmark registration (:func:`blsm.learn.register.register`, Eqs. 5.13-5.25).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import blsm
+from blsm.learn.landmark_fit import default_selection
+from blsm.learn.register import KeypointTargets, register_keypoints, scan_data
+from blsm.learn.register_config import DEFAULT_CONFIG, load_config
+from blsm.learn.registrations import save_registration
+from blsm.learn.scans import load_scan
+from blsm.learn.sequence_scans import make_sequence, perturb_keypoints, truth_keypoints
+
+
+def targets_of(model, scans, how: str, seed: int, noise: float):
+    """Per scan :class:`KeypointTargets` and the selection (for landmarks) or None."""
+    rng = np.random.default_rng(seed)
+    if how == "landmarks":
+        sel = default_selection(model)
+        out = [KeypointTargets(sel.names, scan_data(s, sel, s.meta["id"]).landmarks, np.ones(len(sel)))
+               for s in scans]
+        return out, sel
+    if how == "truth":
+        out = []
+        for s in scans:
+            names, pts = truth_keypoints(model, s)
+            p, c = perturb_keypoints(pts, names, rng, noise=noise)
+            out.append(KeypointTargets(names, p, c, {"stand_in": f"truth + {noise * 1000:.0f} mm noise"}))
+        return out, None
+    from blsm.learn.markerless import scan_keypoints
+
+    out = []
+    for s in scans:
+        k = scan_keypoints(s, where=s.meta["id"])  # MediaPipe
+        out.append(KeypointTargets(list(k.names), np.asarray(k.points), np.asarray(k.confidence),
+                                   {"views_with_person": getattr(k, "views_with_person", None)}))
+    return out, None
+
+
+def errors(regs, scans) -> dict:
+    """Per-frame correspondence error, temporal accelerations (mm/frame^2) and shape spread."""
+    v = np.stack([r.vertices for r in regs]).astype(np.float64)
+    g = np.stack([s.gt_points for s in scans]).astype(np.float64)
+    per = np.linalg.norm(v - g, axis=-1).mean(1) * 1000
+    out = {"error_mean_mm": float(per.mean()), "error_max_frame_mm": float(per.max()), "per_frame_mm": per.tolist()}
+    if len(regs) >= 3:
+        acc = lambda x: x[2:] - 2 * x[1:-1] + x[:-2]  # noqa: E731
+        out["accel_error_mm"] = float(np.linalg.norm(acc(v) - acc(g), axis=-1).mean() * 1000)
+        out["accel_mm"] = float(np.linalg.norm(acc(v), axis=-1).mean() * 1000)
+        out["accel_truth_mm"] = float(np.linalg.norm(acc(g), axis=-1).mean() * 1000)
+    if len(regs) >= 4:
+        jer = lambda x: x[3:] - 3 * x[2:-1] + 3 * x[1:-2] - x[:-3]  # noqa: E731
+        out["jerk_mm"] = float(np.linalg.norm(jer(v), axis=-1).mean() * 1000)
+        out["jerk_truth_mm"] = float(np.linalg.norm(jer(g), axis=-1).mean() * 1000)
+    # Shape spread: the T-pose person (template + displacement) per frame, distance to the mean.
+    tpose = np.stack([r.displacement for r in regs]).astype(np.float64)
+    out["tpose_spread_mm"] = float(np.linalg.norm(tpose - tpose.mean(0), axis=-1).mean() * 1000)
+    out["bone_scale_spread"] = float(np.stack([r.bone_scales for r in regs]).std(0).mean())
+    if all("shape_coeffs" in r.meta for r in regs):  # the person at rest (Eqs. 4, 7, 8), no V_D
+        from blsm.learn.posing import pose
+
+        model = blsm.load()
+        cb = torch.tensor([r.meta["bone_coeffs"] for r in regs], dtype=torch.float32)
+        cs = torch.tensor([r.meta["shape_coeffs"] for r in regs], dtype=torch.float32)
+        with torch.no_grad():
+            offs = torch.einsum("gk,kvc->gvc", cb, model.bone_correctives) + model.shape_decoder(cs)
+            rest = pose(model, model.template + offs, bone_scales=torch.as_tensor(np.stack([r.bone_scales for r in regs]))).vertices
+        rest = rest.double().numpy()
+        out["rest_shape_spread_mm"] = float(np.linalg.norm(rest - rest.mean(0), axis=-1).mean() * 1000)
+    out["stage1_error_mean_mm"] = float(np.mean([r.meta.get("stage1_error_mean_mm", np.nan) for r in regs]))
+    # Off the true surface (along its normal) and along it, and by body part, as docs/registration_floor.md.
+    from blsm.mesh import vertex_normals
+
+    model = blsm.load()
+    faces = model.faces.numpy()
+    d = v - g
+    off = np.stack([np.abs((d[i] * vertex_normals(g[i], faces)).sum(-1)) for i in range(len(g))])
+    along = np.sqrt(np.maximum((d * d).sum(-1) - off**2, 0))
+    out["off_surface_mm"], out["along_surface_mm"] = float(off.mean() * 1000), float(along.mean() * 1000)
+    dist = np.linalg.norm(d, axis=-1) * 1000
+    parts = model.vertex_parts.numpy()
+    out["by_part_mm"] = {n: float(dist[:, parts == i].mean()) for i, n in enumerate(model.part_names) if (parts == i).any()}
+    return out
+
+
+def run(model, scans, how, sequence, args, tag):
+    cfg = load_config(DEFAULT_CONFIG)
+    t0 = time.time()
+    if how == "baseline":  # the landmark registration (Eqs. 5.13-5.25), batches of 4
+        from blsm.learn.register import register
+
+        regs = [r for i in range(0, len(scans), 4) for r in register(model, scans[i:i + 4], cfg)]
+    else:
+        targets, sel = targets_of(model, scans, how, args.seed, args.noise)
+    if how == "baseline":
+        pass
+    elif sequence:
+        regs = register_keypoints(model, scans, targets, cfg, sequence=True, selection=sel)
+    else:  # frame by frame: each its own subject, no smoothing (batched; they are independent)
+        regs = register_keypoints(model, scans, targets, cfg, sequence=False, selection=sel)
+    res = {"seconds": time.time() - t0, **errors(regs, scans)}
+    folder = args.out / tag
+    folder.mkdir(parents=True, exist_ok=True)
+    for r, s in zip(regs, scans):
+        save_registration(r, folder / f"{s.meta['id']}.npz")
+    print(f"{tag}: {json.dumps({k: v for k, v in res.items() if k != 'per_frame_mm'})}", file=sys.stderr, flush=True)
+    return res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("what", choices=["sequence", "scans"])
+    ap.add_argument("paths", nargs="*", type=Path)
+    ap.add_argument("--clip", type=Path, default=Path("out/motions/002_01.npz"))
+    ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--step", type=int, default=2)
+    ap.add_argument("--keypoints", default="truth", help="truth | landmarks | mediapipe")
+    ap.add_argument("--noise", type=float, default=0.02)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--modes", default="together,single")
+    ap.add_argument("--out", type=Path, default=Path("out/register4d"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    model = blsm.load()
+    results = {}
+    if args.what == "sequence":
+        seq = args.out / f"seq_{args.clip.stem}"
+        if not (seq / "sequence.json").exists():
+            make_sequence(seq, args.clip, frames=args.frames, step=args.step)
+        scans = [load_scan(p) for p in sorted(seq.glob("frame_*.npz"))][: args.frames]
+        for mode in args.modes.split(","):
+            results[mode] = run(model, scans, args.keypoints, mode == "together", args,
+                                f"{seq.name}_{args.keypoints}_{mode}")
+        name = f"{seq.name}_{args.keypoints}.json"
+    else:
+        scans = [load_scan(p) for p in args.paths]
+        for s, p in zip(scans, args.paths):
+            s.meta.setdefault("id", p.stem)
+        results["scans"] = run(model, scans, args.keypoints, False, args, f"scans_{args.keypoints}")
+        results["scans"]["ids"] = [s.meta["id"] for s in scans]
+        name = f"scans_{args.keypoints}.json"
+    (args.out / name).write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()
