@@ -701,7 +701,7 @@ def _bad_scan(kind: str, folder: Path) -> tuple[Path, list[str], str]:
         scan.write_bytes(np.random.default_rng(8).bytes(2000))
         return scan, [], "mesh"
     if kind == "mesh_without_landmarks":
-        return _sphere_scan(folder, None), [], "scan has no located landmarks"
+        return _sphere_scan(folder, None), [], "no landmarks located and no vertex colours"
     landmarks = {"landmarks_not_json": b"{\xff", "landmarks_nan": b'{"nose": [0, NaN, 0]}',
                  "landmarks_unknown_name": b'{"third_eye": [0, 1, 0]}', "register_config_unknown_key": b"{}"}
     problems = {"landmarks_not_json": "landmarks", "landmarks_nan": "landmark 'nose' holds NaN or inf",

@@ -22,7 +22,7 @@ def test_empty_file_is_the_default_and_values_are_typed(tmp_path):
 @pytest.mark.parametrize(
     "text, message",
     [
-        ("sede: 3\n", "sede: unknown key (known: background, camera, engine, garments, ground, hair, num, occluders, output,"),
+        ("sede: 3\n", "sede: unknown key (known: background, camera, engine, garments, ground, hair, labels, num, occluders, output,"),
         ("camera:\n  focal: [1, 2]\n", "camera.focal: unknown key"),
         ("seed: three\n", "seed: expected an integer, got 'three'"),
         ("seed: true\n", "seed: expected an integer"),
