@@ -113,10 +113,13 @@ def run(model, scans, how, sequence, args, tag):
         targets, sel = targets_of(model, scans, how, args.seed, args.noise)
     if how == "baseline":
         pass
-    elif sequence:
-        regs = register_keypoints(model, scans, targets, cfg, sequence=True, selection=sel)
-    else:  # frame by frame: each its own subject, no smoothing (batched; they are independent)
-        regs = register_keypoints(model, scans, targets, cfg, sequence=False, selection=sel)
+    else:  # sequence: one subject; else frame by frame (each its own subject, no smoothing; batched)
+        kps = None
+        if args.regressor is not None:  # A_kp learnt for the detector (blsm.learn.keypoint_regressor)
+            from blsm.learn.keypoint_regressor import load_keypoint_regressor
+
+            kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
+        regs = register_keypoints(model, scans, targets, cfg, sequence=sequence, selection=sel, keypoints=kps)
     res = {"seconds": time.time() - t0, **errors(regs, scans)}
     folder = args.out / tag
     folder.mkdir(parents=True, exist_ok=True)
@@ -137,6 +140,8 @@ def main() -> None:
     ap.add_argument("--noise", type=float, default=0.02)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--modes", default="together,single")
+    ap.add_argument("--regressor", type=Path, default=None,
+                    help="keypoint regressor file (A_kp learnt for the detector; default: the name mapping)")
     ap.add_argument("--out", type=Path, default=Path("out/register4d"))
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -155,9 +160,10 @@ def main() -> None:
         scans = [load_scan(p) for p in args.paths]
         for s, p in zip(scans, args.paths):
             s.meta.setdefault("id", p.stem)
-        results["scans"] = run(model, scans, args.keypoints, False, args, f"scans_{args.keypoints}")
+        tag = f"scans_{args.keypoints}" + ("_regressor" if args.regressor is not None else "")
+        results["scans"] = run(model, scans, args.keypoints, False, args, tag)
         results["scans"]["ids"] = [s.meta["id"] for s in scans]
-        name = f"scans_{args.keypoints}.json"
+        name = f"{tag}.json"
     (args.out / name).write_text(json.dumps(results, indent=1))
 
 

@@ -83,6 +83,9 @@ def add_parsers(sub: Any) -> None:
     reg.add_argument("--views", type=int, default=18, help="rendered views per scan for the detector (18)")
     reg.add_argument("--keypoint-config", type=Path, help="KeypointFitConfig YAML of the keypoint registration "
                      "(Eqs. 6.4-6.6; default: its built-in values)")
+    reg.add_argument("--keypoint-regressor", default=None, help="A_kp of Eq. 6.4 learnt for the detector's "
+                     "keypoints (blsm.learn.keypoint_regressor; default: the packaged one for MediaPipe; 'none': "
+                     "the detector's names mapped onto the model's keypoints)")
     reg.add_argument("--sequence", action="store_true", help="the scans (or the folder's scans, sorted by "
                      "name) are frames of one subject: one bone and shape, poses smoothed in time (Eq. 6.4)")
     reg.set_defaults(func=command("register", cmd_register))
@@ -124,9 +127,9 @@ def add_parsers(sub: Any) -> None:
     smpl.add_argument("--out", required=True, help="output .npz")
     smpl.set_defaults(func=command("train-smpl", cmd_train_smpl))
     from blsm.learn.reparam_cli import add_parser as add_reparam  # blsm reparam (thesis ch. 3)
-    add_reparam(sub, HELP["reparam"])
+    add_reparam(sub, HELP["reparam"], command)
     from blsm.learn.markerless import add_parser as add_scan_keypoints  # blsm scan-keypoints
-    add_scan_keypoints(sub, HELP["scan-keypoints"])
+    add_scan_keypoints(sub, HELP["scan-keypoints"], command)
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -246,6 +249,12 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
 
     if args.keypoint_config is not None:
         load_keypoint_config(args.keypoint_config)  # fail before the detector runs
+    from blsm.learn.keypoint_regressor import DEFAULT_REGRESSOR, load_keypoint_regressor
+
+    regressor, path = None, None
+    if args.keypoint_regressor != "none":
+        path = DEFAULT_REGRESSOR if args.keypoint_regressor is None else Path(args.keypoint_regressor)
+        regressor = load_keypoint_regressor(path, model.template.shape[0])
 
     targets, sel = [], None
     if not args.markerless and all(s.located.any() for s, _, _ in jobs):
@@ -272,16 +281,18 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
                 raise ValueError(f"{p}: only {int(ok.sum())} keypoints triangulated (need >= 4)")
             targets.append(KeypointTargets(list(k.names), k.points, k.confidence, {
                 "source": "markerless", "detector": k.detector, "views": k.views,
+                "a_kp": str(path) if regressor is not None else "model keypoints by name",
                 "views_with_person": k.views_with_person, "view_failure_rate": 1 - k.views_with_person / k.views,
                 "swapped_views": int(k.per_view.swapped.sum()), "keypoint_views": k.num_views.tolist()}))
     scans = [s for s, _, _ in jobs]
     kcfg = load_keypoint_config(args.keypoint_config) if args.keypoint_config is not None else None
+    kps = regressor if sel is None else None
     if args.sequence:
-        regs = register_keypoints(model, scans, targets, cfg, kcfg, sequence=True, selection=sel)
+        regs = register_keypoints(model, scans, targets, cfg, kcfg, sequence=True, selection=sel, keypoints=kps)
     else:
         regs = [r for i in range(0, len(jobs), args.batch)
                 for r in register_keypoints(model, scans[i:i + args.batch], targets[i:i + args.batch], cfg,
-                                            kcfg, selection=sel)]
+                                            kcfg, selection=sel, keypoints=kps)]
     for reg, (_, target, _) in zip(regs, jobs, strict=True):
         save_registration(reg, target)
         print(f"wrote {target}", file=sys.stderr)

@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -484,8 +485,9 @@ def contact_sheet(
     return save_png(np.asarray(sheet), path)
 
 
-def add_parser(sub: Any, help_text: str) -> None:
-    """``blsm scan-keypoints SCAN --out JSON``: the markerless keypoints of one scan (for debugging)."""
+def add_parser(sub: Any, help_text: str, wrap: Callable) -> None:
+    """``blsm scan-keypoints SCAN --out JSON``: the markerless keypoints of one scan (for debugging);
+    ``wrap(name, run)`` turns a ValueError into one line and exit 2."""
     p = sub.add_parser("scan-keypoints", help=help_text)
     p.add_argument("scan", type=Path, help="a blsm-scan .npz or an OBJ / PLY / GLB mesh (vertex colours used)")
     p.add_argument("--out", type=Path, required=True, help="JSON file of the keypoints")
@@ -493,25 +495,19 @@ def add_parser(sub: Any, help_text: str) -> None:
     p.add_argument("--resolution", type=int, default=ViewConfig.resolution)
     p.add_argument("--sheet", type=Path, default=None, help="PNG of the views with the detections drawn")
     p.add_argument("--python", default=None, help="the MediaPipe environment's python (default .venv-reference)")
-    p.set_defaults(func=_cmd)
+    p.set_defaults(func=wrap("scan-keypoints", _cmd))
 
 
 def _cmd(args: argparse.Namespace) -> int:
-    import sys
-
     from blsm.io import atomic_write
     from blsm.learn.scans import load_scan
     from blsm.pose2d.detectors import MediaPipeDetector
 
-    try:
-        scan = load_scan(args.scan)
-        detector = MediaPipeDetector(args.python)
-        detector.command()  # a missing environment fails before the renders
-        cfg = MarkerlessConfig(views=ViewConfig(views=args.views, resolution=args.resolution))
-        result = scan_keypoints(scan, detector, cfg, str(args.scan), args.sheet is not None)
-    except ValueError as exc:
-        print(f"blsm scan-keypoints: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+    scan = load_scan(args.scan)
+    detector = MediaPipeDetector(args.python)
+    detector.command()  # a missing environment fails before the renders
+    cfg = MarkerlessConfig(views=ViewConfig(views=args.views, resolution=args.resolution))
+    result = scan_keypoints(scan, detector, cfg, str(args.scan), args.sheet is not None)
     with atomic_write(args.out, "w") as fh:
         json.dump({"scan": str(args.scan), "config": asdict(cfg), **result.to_json()}, fh, indent=1)
     if args.sheet is not None:

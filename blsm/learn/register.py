@@ -232,12 +232,19 @@ class KeypointTargets:
     info: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
-def _stack_targets(model, targets: Sequence[KeypointTargets], selection: LandmarkSelection | None):
+def _stack_targets(model, targets: Sequence[KeypointTargets], selection: LandmarkSelection | None,
+                   keypoints: KeypointSet | None = None):
     """The union of the keypoint names as one :class:`KeypointSet` and (T, K, 3), (T, K) tensors."""
     names: list[str] = []
     for t in targets:
         names += [n for n in t.names if n not in names]
-    if selection is not None:
+    if keypoints is not None:
+        idx = [keypoints.names.index(n) for n in names if n in keypoints.names]
+        if not idx:
+            raise ValueError(f"the keypoint regressor knows none of the targets' keypoints {names[:4]}...")
+        kps = KeypointSet([keypoints.names[i] for i in idx], keypoints.joint[idx], keypoints.vertices[idx],
+                          keypoints.bary[idx])
+    elif selection is not None:
         order = [n for n in selection.names if n in names]
         idx = [selection.names.index(n) for n in order]
         kps = KeypointSet.of_selection(LandmarkSelection(order, selection.vertices[idx], selection.bary[idx]))
@@ -278,6 +285,7 @@ def register_keypoints(
     sequence: bool = False,
     selection: LandmarkSelection | None = None,
     crop_distance: float = 0.03,
+    keypoints: KeypointSet | None = None,
     progress: bool = True,
 ) -> list[Registration]:
     """Register scans from 3D keypoints (thesis Sec. 6.3): Eq. 6.4, Eqs. 6.5-6.6, then Eqs. 5.14-5.25.
@@ -294,6 +302,8 @@ def register_keypoints(
         selection: the targets are landmarks of this selection (A_lm), not model keypoints.
         crop_distance: stage 2 sees only scan triangles within this distance of the Eq. 6.5 body
             (metres), so that a stool or floor markers in the scan do not pull the surface.
+        keypoints: A_kp for the targets' names (e.g. a learnt detector regressor,
+            :mod:`blsm.learn.keypoint_regressor`); default: the model's keypoints of those names.
         progress: print progress lines on stderr.
 
     Returns:
@@ -304,7 +314,7 @@ def register_keypoints(
     if len(scans) != len(targets) or not scans:
         raise ValueError(f"need one keypoint set per scan, got {len(scans)} scans and {len(targets)} sets")
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if progress else None
-    kps, pts, conf = _stack_targets(model, targets, selection)
+    kps, pts, conf = _stack_targets(model, targets, selection, keypoints)
     groups = torch.zeros(len(scans), dtype=torch.long) if sequence else torch.arange(len(scans))
     t0 = time.perf_counter()
     st_kp = fit_keypoints(model, kps, pts, conf, groups, kcfg)

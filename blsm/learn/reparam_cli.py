@@ -12,13 +12,14 @@ file on stderr, exit status 2, and no output file. The method is :mod:`blsm.lear
 from __future__ import annotations
 
 import argparse
-import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 
-def add_parser(sub: Any, help_text: str) -> None:
-    """Add ``blsm reparam`` to ``blsm``'s sub-commands (``help_text``: its line in ``blsm --help``)."""
+def add_parser(sub: Any, help_text: str, wrap: Callable) -> None:
+    """Add ``blsm reparam`` to ``blsm``'s sub-commands (``help_text``: its line in ``blsm --help``;
+    ``wrap(name, run)``: the handler that turns a ValueError into one line and exit 2)."""
     p = sub.add_parser(
         "reparam", help=help_text,
         description="Reparameterise a BLSM model to a new template (thesis ch. 3): vertex-to-surface "
@@ -45,16 +46,7 @@ def add_parser(sub: Any, help_text: str) -> None:
     p.add_argument("--far-fraction", type=float, default=0.01,
                    help="largest allowed fraction of far vertices, either way (default 0.01)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output file")
-    p.set_defaults(func=cmd_reparam)
-
-
-def cmd_reparam(args: argparse.Namespace) -> int:
-    """Run ``blsm reparam``; a ``ValueError`` becomes one line on stderr and exit status 2."""
-    try:
-        return _run(args)
-    except ValueError as exc:
-        print(f"blsm reparam: error: {str(exc).splitlines()[0]}", file=sys.stderr)
-        return 2
+    p.set_defaults(func=wrap("reparam", _run))
 
 
 def _run(args: argparse.Namespace) -> int:

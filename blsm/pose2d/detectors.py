@@ -109,17 +109,29 @@ class MediaPipeDetector:
                 path = Path(tmp) / f"view_{i:03d}.png"
                 Image.fromarray(np.ascontiguousarray(img)).save(path)
                 items.append({"image": str(path), "box": [float(v) for v in box]})
-            job, out = Path(tmp) / "job.json", Path(tmp) / "out.json"
-            job.write_text(json.dumps({"items": items}))
-            res = subprocess.run([*cmd, str(job), str(out)], capture_output=True, text=True, check=False)
-            if res.returncode != 0 or not out.is_file():
-                last = (res.stderr.strip().splitlines() or [f"exit status {res.returncode}"])[-1]
-                raise ValueError(f"{SCRIPT}: MediaPipe failed ({last})")
-            answer = json.loads(out.read_text())
-        found = answer.get("items", [])
-        if len(found) != len(images):
-            raise ValueError(f"{SCRIPT}: answered {len(found)} of {len(images)} images")
+            found = run_pose_script(cmd, items, f"{SCRIPT}: MediaPipe")["items"]
         return [None if it["landmarks"] is None else np.asarray(it["landmarks"], np.float64) for it in found]
+
+
+def run_pose_script(command: Sequence[str], items: list[dict], what: str) -> dict:
+    """Run a pose script of :mod:`blsm.pose2d.mediapipe_pose`'s interface on ``items``.
+
+    ``command + [JOB.json, OUT.json]`` is run with ``JOB.json = {"items": items}`` (each ``{"image":
+    PATH, "box": [x0, y0, x1, y1]}``); returns the answer (``{"items": [...], "reference": ...}``)
+    with one item per job item. A failing command, or a wrong number of answers, is a ValueError
+    starting with ``what`` and ending with the command's last line.
+    """
+    with tempfile.TemporaryDirectory(prefix="blsm_pose_job_") as tmp:
+        job, out = Path(tmp) / "job.json", Path(tmp) / "out.json"
+        job.write_text(json.dumps({"items": items}))
+        res = subprocess.run([*command, str(job), str(out)], capture_output=True, text=True, check=False)
+        if res.returncode != 0 or not out.is_file():
+            last = (res.stderr.strip().splitlines() or [f"exit status {res.returncode}"])[-1]
+            raise ValueError(f"{what} failed ({last})")
+        answer = json.loads(out.read_text())
+    if len(answer.get("items", [])) != len(items):
+        raise ValueError(f"{what} answered {len(answer.get('items', []))} of {len(items)} images")
+    return answer
 
 
 @dataclass

@@ -39,9 +39,7 @@ import json
 import math
 import os
 import shlex
-import subprocess
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -51,6 +49,7 @@ import torch
 
 from blsm.io import atomic_write
 from blsm.pose2d.detectors import SCRIPT as MEDIAPIPE_SCRIPT
+from blsm.pose2d.detectors import run_pose_script
 
 COCO_NAMES: tuple[str, ...] = (
     "nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",
@@ -166,17 +165,9 @@ def run_reference(people: list[Person], command: list[str], cache_path: Path) ->
     keys = [f"{_file_hash(p.image, memo)}|{[round(v, 3) for v in p.box]}|{Path(tag).name}" for p in people]
     todo = [i for i, k in enumerate(keys) if k not in cache]
     if todo:
-        with tempfile.TemporaryDirectory() as tmp:
-            job, out = Path(tmp) / "job.json", Path(tmp) / "out.json"
-            job.write_text(json.dumps({"items": [{"image": str(people[i].image.resolve()), "box": list(people[i].box)} for i in todo]}))
-            res = subprocess.run([*command, str(job), str(out)], capture_output=True, text=True)
-            if res.returncode != 0 or not out.is_file():
-                last = (res.stderr.strip().splitlines() or [f"exit status {res.returncode}"])[-1]
-                raise ValueError(f"reference {shlex.join(command)}: failed ({last})")
-            answer = json.loads(out.read_text())
-        items = answer.get("items", [])
-        if len(items) != len(todo):
-            raise ValueError(f"reference {shlex.join(command)}: answered {len(items)} of {len(todo)} people")
+        job = [{"image": str(people[i].image.resolve()), "box": list(people[i].box)} for i in todo]
+        answer = run_pose_script(command, job, f"reference {shlex.join(command)}:")
+        items = answer["items"]
         for i, item in zip(todo, items, strict=True):
             cache[keys[i]] = {"landmarks": item["landmarks"], "reference": answer.get("reference", tag)}
         with atomic_write(cache_path, "w") as fh:
