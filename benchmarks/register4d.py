@@ -152,10 +152,10 @@ def main() -> None:
         if not (seq / "sequence.json").exists():
             make_sequence(seq, args.clip, frames=args.frames, step=args.step)
         scans = [load_scan(p) for p in sorted(seq.glob("frame_*.npz"))][: args.frames]
+        how = args.keypoints + ("_regressor" if args.regressor is not None else "")
         for mode in args.modes.split(","):
-            results[mode] = run(model, scans, args.keypoints, mode == "together", args,
-                                f"{seq.name}_{args.keypoints}_{mode}")
-        name = f"{seq.name}_{args.keypoints}.json"
+            results[mode] = run(model, scans, args.keypoints, mode == "together", args, f"{seq.name}_{how}_{mode}")
+        name = f"{seq.name}_{how}.json"
     else:
         scans = [load_scan(p) for p in args.paths]
         for s, p in zip(scans, args.paths):
