@@ -20,14 +20,11 @@ the painted rig that is rendered.
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-
-NAME_RE = re.compile(r"^[a-z0-9_]{1,32}$")
 
 
 def member(name: str) -> str:
@@ -43,8 +40,6 @@ class Topology:
         import blsm
         from blsm.learn.reparam_model import read_correspondence
 
-        if not NAME_RE.match(name):
-            raise ValueError(f"labels.topology_name must match {NAME_RE.pattern}, got {name!r}")
         self.name, self.path = name, Path(path)
         corners, bary = read_correspondence(self.path)
         self.model = blsm.load(self.path)
@@ -66,15 +61,10 @@ class Topology:
             registration: the subject's ``bone``, ``shape``, ``displacement`` (Vb, 3) (:class:`synth.subjects.Subject`).
             pose: (47,) unconstrained values x; global_orient: (3,) axis-angle; transl: (3,) metres.
         """
-        from blsm.lbs import linear_blend_skinning
+        from synth.subjects import registration_output
 
-        def t(a: Any) -> torch.Tensor:
-            return torch.as_tensor(np.asarray(a), dtype=torch.float32)[None]
-
-        out = self.model(pose=t(pose), bone=t(registration["bone"]), shape=t(registration["shape"]),
-                         global_orient=t(global_orient), transl=t(transl))
         disp = torch.as_tensor(np.asarray(registration["displacement"]), dtype=torch.float32)
-        disp2 = (self.bary[..., None] * disp[self.corners]).sum(1)  # W' D (Eq. 3.6)
-        tr = out.skinning_transforms
-        v = linear_blend_skinning(out.template + disp2, self.model.weights, tr[..., :3], tr[..., 3])
-        return v[0].numpy().astype(np.float32)
+        mapped = (self.bary[..., None] * disp[self.corners]).sum(1)  # W' D (Eq. 3.6)
+        reg = {"bone": registration["bone"], "shape": registration["shape"], "displacement": mapped.numpy()}
+        v, _, _ = registration_output(self.model, reg, pose, global_orient=global_orient, transl=transl)
+        return v.numpy().astype(np.float32)
