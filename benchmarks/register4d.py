@@ -8,7 +8,9 @@ and single held-out scans, against the true correspondence (``gt_points``). See 
 (:func:`blsm.learn.sequence_scans.perturb_keypoints`: 2 cm noise, 10 % dropouts, a left/right swap in
 10 % of the frames); ``landmarks``: the scans' 74 landmarks (5 mm noise) as keypoints (A_lm);
 ``mediapipe``: ``blsm.learn.markerless.scan_keypoints`` (rendered views, MediaPipe, Eq. 6.3);
-``baseline``: the landmark registration (:func:`blsm.learn.register.register`, Eqs. 5.13-5.25).
+``baseline``: the landmark registration (:func:`blsm.learn.register.register`, Eqs. 5.13-5.25);
+``detector``: the same, with the landmarks located by the learnt detector on the renders
+(:mod:`blsm.learn.markerless_landmarks`, ``--detector FILE``).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -102,9 +105,42 @@ def errors(regs, scans) -> dict:
     return out
 
 
+def detected_landmarks(scans, weights):
+    """The scans with their landmarks from the learnt detector, and the detection's errors."""
+    from blsm.learn.markerless_landmarks import detect_landmarks, with_landmarks
+    from blsm.learn.scans import landmark_points
+    from blsm.pose2d.landmark_net import LandmarkDetector
+
+    det = LandmarkDetector(weights)
+    out, errs, located, found = [], [], [], []
+    for s in scans:
+        k = detect_landmarks(s, det, where=s.meta["id"])
+        truth = landmark_points(torch.as_tensor(np.asarray(s.gt_points, np.float64))).numpy()
+        e = np.linalg.norm(k.points - truth, axis=1) * 1000
+        errs.append(e)
+        located.append(int(np.isfinite(e).sum()))
+        found.append(k.views_with_person / k.views)
+        out.append(with_landmarks(s, k, s.meta["id"]))
+    e = np.concatenate(errs)
+    e = e[np.isfinite(e)]
+    extra = {"detector": det.name, "landmark_error_median_mm": float(np.median(e)), "landmark_error_mean_mm": float(e.mean()),
+             "landmark_error_rms_mm": float(np.sqrt((e**2).mean())), "landmark_error_p90_mm": float(np.percentile(e, 90)),
+             "landmarks_located_mean": float(np.mean(located)), "view_failure_rate": float(1 - np.mean(found)),
+             "landmark_error_per_scan_mm": [float(np.nanmean(x)) for x in errs]}
+    return out, extra
+
+
 def run(model, scans, how, sequence, args, tag):
     cfg = load_config(DEFAULT_CONFIG)
     t0 = time.time()
+    extra = {}
+    if how == "detector":  # landmarks from the learnt detector on the renders, then the landmark registration
+        scans, extra = detected_landmarks(scans, args.detector)
+        how = "baseline"
+    if how == "baseline" and args.landmark_noise > 0:  # extra noise on the scans' own landmarks
+        rng = np.random.default_rng(args.seed)
+        scans = [replace(s, landmarks=(s.landmarks + rng.normal(0, args.landmark_noise, s.landmarks.shape)).astype(np.float32))
+                 for s in scans]
     if how == "baseline":  # the landmark registration (Eqs. 5.13-5.25), batches of 4
         from blsm.learn.register import register
 
@@ -120,7 +156,7 @@ def run(model, scans, how, sequence, args, tag):
 
             kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
         regs = register_keypoints(model, scans, targets, cfg, sequence=sequence, selection=sel, keypoints=kps)
-    res = {"seconds": time.time() - t0, **errors(regs, scans)}
+    res = {"seconds": time.time() - t0, **errors(regs, scans), **extra}
     folder = args.out / tag
     folder.mkdir(parents=True, exist_ok=True)
     for r, s in zip(regs, scans):
@@ -136,12 +172,16 @@ def main() -> None:
     ap.add_argument("--clip", type=Path, default=Path("out/motions/002_01.npz"))
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--step", type=int, default=2)
-    ap.add_argument("--keypoints", default="truth", help="truth | landmarks | mediapipe")
+    ap.add_argument("--keypoints", default="truth", help="truth | landmarks | mediapipe | baseline | detector")
     ap.add_argument("--noise", type=float, default=0.02)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--modes", default="together,single")
     ap.add_argument("--regressor", type=Path, default=None,
                     help="keypoint regressor file (A_kp learnt for the detector; default: the name mapping)")
+    ap.add_argument("--landmark-noise", type=float, default=0.0,
+                    help="--keypoints baseline: Gaussian noise per axis added to the scans' landmarks, metres")
+    ap.add_argument("--detector", type=Path, default=None,
+                    help="landmark detector file for --keypoints detector (default: the packaged one)")
     ap.add_argument("--out", type=Path, default=Path("out/register4d"))
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -161,6 +201,7 @@ def main() -> None:
         for s, p in zip(scans, args.paths):
             s.meta.setdefault("id", p.stem)
         tag = f"scans_{args.keypoints}" + ("_regressor" if args.regressor is not None else "")
+        tag += f"_lmnoise{args.landmark_noise * 1000:g}" if args.landmark_noise > 0 else ""
         results["scans"] = run(model, scans, args.keypoints, False, args, tag)
         results["scans"]["ids"] = [s.meta["id"] for s in scans]
         name = f"{tag}.json"

@@ -29,6 +29,7 @@ HELP = {
     "train-smpl": "train the SMPL-reimpl baseline on registrations (Sec. 5.5.1)",
     "reparam": "reparameterise a model to a new template topology (thesis ch. 3, Eqs. 3.5-3.7)",
     "scan-keypoints": "3D keypoints of a scan from multi-view renders and MediaPipe (Sec. 6.3.1)",
+    "train-landmark-detector": "train the 2D landmark detector of markerless registration on stand-in scans",
 }
 
 
@@ -79,7 +80,12 @@ def add_parsers(sub: Any) -> None:
     reg.add_argument("--overwrite", action="store_true", help="replace existing registration files")
     reg.add_argument("--markerless", action="store_true", help="register from detected 3D keypoints even when "
                      "the scans have landmarks (thesis Sec. 6.3; scans without landmarks always are)")
-    reg.add_argument("--detector", default="mediapipe", choices=["mediapipe"], help="2D keypoint detector")
+    reg.add_argument("--detector", default="mediapipe", choices=["mediapipe", "landmarks"],
+                     help="markerless detector: 'mediapipe' (default) fits MediaPipe Pose keypoints (Eq. 6.4, "
+                     "needs .venv-reference); 'landmarks' locates the scan's 74 landmarks with a learnt detector "
+                     "(--landmark-detector, blsm train-landmark-detector) and runs the landmark registration")
+    reg.add_argument("--landmark-detector", type=Path, default=None,
+                     help="landmark detector file for --detector landmarks (blsm train-landmark-detector)")
     reg.add_argument("--views", type=int, default=18, help="rendered views per scan for the detector (18)")
     reg.add_argument("--keypoint-config", type=Path, help="KeypointFitConfig YAML of the keypoint registration "
                      "(Eqs. 6.4-6.6; default: its built-in values)")
@@ -130,6 +136,8 @@ def add_parsers(sub: Any) -> None:
     add_reparam(sub, HELP["reparam"], command)
     from blsm.learn.markerless import add_parser as add_scan_keypoints  # blsm scan-keypoints
     add_scan_keypoints(sub, HELP["scan-keypoints"], command)
+    from blsm.learn.landmark_detector import add_parser as add_detector  # blsm train-landmark-detector
+    add_detector(sub, HELP["train-landmark-detector"], command)
 
 
 def _add_evaluate(sub: Any) -> None:
@@ -219,8 +227,11 @@ def cmd_register(args: argparse.Namespace) -> int:
             raise ValueError(f"{p}: no landmarks located and no vertex colours to detect keypoints on "
                              "(give --landmarks, or --markerless to use the untextured renders)")
         jobs.append((scan, target, p))
-    if args.markerless or args.sequence or any(not s.located.any() for s, _, _ in jobs):
-        return _register_keypoints(model, jobs, cfg, selection, args)
+    detect = args.markerless or any(not s.located.any() for s, _, _ in jobs)
+    if detect and args.detector == "landmarks":  # the scans' landmarks from their renders, then as usual
+        jobs, detect = _detect_landmarks(jobs, args), False
+    if detect or args.sequence:
+        return _register_keypoints(model, jobs, cfg, selection, args, detect)
     for i in range(0, len(jobs), args.batch):
         chunk = jobs[i : i + args.batch]
         regs = register(model, [s for s, _, _ in chunk], cfg, selection=selection)
@@ -238,9 +249,31 @@ def _scan_files(folder: Path) -> list[Path]:
     return files
 
 
-def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namespace) -> int:
+def _detect_landmarks(jobs: list, args: argparse.Namespace) -> list:
+    """Each scan with its landmarks located from its renders (``blsm.learn.markerless_landmarks``)."""
+    from blsm.learn.markerless import MarkerlessConfig
+    from blsm.learn.markerless_landmarks import LandmarkDetectionConfig, detect_landmarks, with_landmarks
+    from blsm.learn.multiview import ViewConfig
+    from blsm.pose2d.landmark_net import LandmarkDetector
+
+    if args.views < 2:
+        raise ValueError(f"--views must be >= 2, got {args.views}")
+    detector = LandmarkDetector(args.landmark_detector)
+    dcfg = LandmarkDetectionConfig(MarkerlessConfig(views=ViewConfig(views=args.views)))
+    out = []
+    for s, target, p in jobs:
+        found = detect_landmarks(s, detector, dcfg, str(p))
+        scan = with_landmarks(s, found, str(p))
+        lf = scan.meta["landmarks_from"]
+        print(f"{p}: {lf['located']} landmarks located from {lf['views_with_person']}/{lf['views']} views",
+              file=sys.stderr)
+        out.append((scan, target, p))
+    return out
+
+
+def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namespace, detect: bool) -> int:
     """Registration from keypoints (thesis Sec. 6.3): landmarks as keypoints where every scan has
-    them (and no ``--markerless``), else markerless keypoints (``blsm.learn.markerless``)."""
+    them (and ``detect`` is off), else MediaPipe keypoints (``blsm.learn.markerless``)."""
     import numpy as np
 
     from blsm.learn.keypoint_fit import load_keypoint_config
@@ -257,7 +290,7 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
         regressor = load_keypoint_regressor(path, model.template.shape[0])
 
     targets, sel = [], None
-    if not args.markerless and all(s.located.any() for s, _, _ in jobs):
+    if not detect and all(s.located.any() for s, _, _ in jobs):
         sel = selection
         for s, _, p in jobs:
             targets.append(KeypointTargets(sel.names, scan_data(s, sel, str(p)).landmarks, np.ones(len(sel)),

@@ -278,25 +278,28 @@ def triangulate_all(
 
 
 def fix_swaps(
-    P: np.ndarray, detections: np.ndarray, consensus: np.ndarray, cfg: MarkerlessConfig
+    P: np.ndarray, detections: np.ndarray, consensus: np.ndarray, cfg: MarkerlessConfig,
+    mirror: tuple[int, ...] | list[int] = MEDIAPIPE_MIRROR,
 ) -> np.ndarray:
     """(C,) bool: views whose left/right-exchanged detections fit the consensus clearly better.
 
     For each view, the median reprojection error over its visible landmarks that have a left/right
     counterpart, in its own assignment and with left and right exchanged; swapped if the exchanged
     one is below ``swap_ratio`` times the own one (and at least 3 such landmarks are visible).
+    ``mirror``: each landmark's left/right counterpart (default BlazePose's).
     """
-    paired = np.array([i for i, j in enumerate(MEDIAPIPE_MIRROR) if i != j])
+    mirror = np.asarray(mirror)
+    paired = np.array([i for i, j in enumerate(mirror) if i != j])
     out = np.zeros(len(P), dtype=bool)
     ok_x = np.isfinite(consensus).all(1)
     for v in range(len(P)):
         det = detections[v]
         with np.errstate(invalid="ignore"):
-            vis = paired[(det[paired, 2] >= cfg.min_visibility) & ok_x[paired] & ok_x[np.array(MEDIAPIPE_MIRROR)[paired]]]
+            vis = paired[(det[paired, 2] >= cfg.min_visibility) & ok_x[paired] & ok_x[mirror[paired]]]
         if len(vis) < 3:
             continue
         own = np.median([reprojection_errors(P[v : v + 1], det[k : k + 1, :2], consensus[k])[0] for k in vis])
-        swp = np.median([reprojection_errors(P[v : v + 1], det[k : k + 1, :2], consensus[MEDIAPIPE_MIRROR[k]])[0]
+        swp = np.median([reprojection_errors(P[v : v + 1], det[k : k + 1, :2], consensus[mirror[k]])[0]
                          for k in vis])
         out[v] = swp < cfg.swap_ratio * own
     return out

@@ -20,6 +20,7 @@ EXAMPLES = {
     "train-smpl": ["--registrations", "r", "--out", "s.npz"],
     "reparam": ["default", "t.obj", "--out", "m.npz"],
     "scan-keypoints": ["s.npz", "--out", "k.json"],
+    "train-landmark-detector": ["p", "--out", "d.pt"],
 }
 
 
@@ -45,6 +46,8 @@ def test_every_learning_command_is_a_subcommand_with_its_help_line(capsys):
          "blsm train-smpl: error: {tmp}/none: not a folder of registrations"),
         ("evaluate --registrations {tmp}/none --ks x --out {tmp}/e.md", "out",
          "blsm evaluate: error: invalid literal"),
+        ("train-landmark-detector {tmp}/none --out {tmp}/d.pt", "err",
+         "blsm train-landmark-detector: error: {tmp}/none: not a population folder (no scans/)"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, stream, message):

@@ -107,7 +107,7 @@ def test_cli_markerless_errors(model, selection, tmp_path, capsys, monkeypatch):
     colors = np.full((len(d["vertices"]), 3), 180, np.uint8)
     p = write_scan_npz(_SynthLike(d, selection), tmp_path / "nobody.npz", colors=colors,
                        landmarks=np.full((len(selection), 3), np.nan, np.float32))
-    assert main(["register", str(p), "--out", str(tmp_path / "o"), "--views", "3"]) == 2
+    assert main(["register", str(p), "--out", str(tmp_path / "o"), "--views", "3", "--detector", "mediapipe"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nobody.npz" in err[0] and "no person" in err[0]
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").iterdir())  # nothing half-written
