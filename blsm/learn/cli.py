@@ -212,6 +212,8 @@ def cmd_register(args: argparse.Namespace) -> int:
                          f"got {len(args.scans)} scans")
     if args.batch < 1:
         raise ValueError(f"--batch must be >= 1, got {args.batch}")
+    if args.landmark_detector is not None and args.detector != "landmarks":
+        raise ValueError(f"{args.landmark_detector}: --landmark-detector needs --detector landmarks")
     paths = [q for p in args.scans for q in (_scan_files(p) if p.is_dir() else [p])]
     jobs = []
     for p in paths:

@@ -41,6 +41,8 @@ def test_every_learning_command_is_a_subcommand_with_its_help_line(capsys):
         ("learn {tmp}/none --out {tmp}/m.npz", "err",
          "blsm learn: error: {tmp}/none: no such registration file"),
         ("register {tmp}/s.npz --out {tmp}/o --batch 0", "err", "blsm register: error: --batch must be >= 1"),
+        ("register {tmp}/s.npz --out {tmp}/o --landmark-detector {tmp}/d.pt", "err",
+         "blsm register: error: {tmp}/d.pt: --landmark-detector needs --detector landmarks"),
         ("train {tmp}/none.yaml --out {tmp}/m.npz", "err", "blsm train: error: {tmp}/none.yaml: cannot read"),
         ("train-smpl --registrations {tmp}/none --out {tmp}/s.npz", "out",
          "blsm train-smpl: error: {tmp}/none: not a folder of registrations"),
