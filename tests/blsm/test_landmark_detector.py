@@ -15,24 +15,9 @@ from blsm.pose2d import landmark_net as N
 
 
 @pytest.fixture(scope="module")
-def body(model):
+def body(coloured_body):
     """A posed body of the packaged model as a coloured scan with exact ground truth."""
-    gen = torch.Generator().manual_seed(4)
-    angles = (torch.rand(1, model.num_dofs, generator=gen) - 0.5) * 0.3
-    lo, hi = model.dof_limits[:, 0], model.dof_limits[:, 1]
-    with torch.no_grad():
-        out = model(angles=angles.clamp(lo, hi), global_orient=torch.tensor([[0.0, 2.0, 0.0]]))
-    v = out.vertices[0].numpy().astype(np.float32)
-    colors = np.random.default_rng(0).integers(60, 200, size=(len(v), 3)).astype(np.uint8)
-    return Scan(
-        v,
-        model.faces.numpy().astype(np.int32),
-        [],
-        np.zeros((0, 3), np.float32),
-        {"id": "body"},
-        gt_points=v,
-        colors=colors,
-    )
+    return coloured_body(4, 2.0)
 
 
 class _Projecting:

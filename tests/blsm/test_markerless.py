@@ -14,18 +14,9 @@ from blsm.pose2d.detectors import MEDIAPIPE_MIRROR, MEDIAPIPE_NAMES, MediaPipeDe
 
 
 @pytest.fixture(scope="module")
-def body(model):
+def body(coloured_body):
     """A posed body of the packaged model as a coloured scan with exact ground truth."""
-    gen = torch.Generator().manual_seed(3)
-    angles = (torch.rand(1, model.num_dofs, generator=gen) - 0.5) * 0.3
-    lo, hi = model.dof_limits[:, 0], model.dof_limits[:, 1]
-    with torch.no_grad():
-        out = model(angles=angles.clamp(lo, hi), global_orient=torch.tensor([[0.0, 0.7, 0.0]]))
-    v = out.vertices[0].double().numpy()
-    rng = np.random.default_rng(0)
-    colors = rng.integers(60, 200, size=(len(v), 3)).astype(np.uint8)
-    return Scan(v.astype(np.float32), model.faces.numpy().astype(np.int32), [], np.zeros((0, 3), np.float32),
-                {"id": "body"}, gt_points=v.astype(np.float32), gt_joints=out.joints[0].numpy(), colors=colors)
+    return coloured_body(3, 0.7)
 
 
 def _cameras(n: int = 8):
