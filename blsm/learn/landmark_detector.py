@@ -92,7 +92,7 @@ def render_scan_views(
     Returns:
         (images (C, H, W, 3) uint8, boxes (C, 4) pixels, uv (C, L, 2) the true landmarks' projections).
     """
-    from blsm.learn.multiview import ViewConfig, render_views, view_boxes, view_cameras
+    from blsm.learn.multiview import ViewConfig, render_scan
     from blsm.learn.scans import landmark_points
 
     vcfg = ViewConfig() if views is None else views
@@ -104,9 +104,7 @@ def render_scan_views(
     verts = (scan.vertices - centre) @ rot.T + centre
     truth = landmark_points(torch.as_tensor(np.asarray(scan.gt_points, np.float64))).numpy()
     truth = (truth - centre) @ rot.T + centre
-    cams = view_cameras(verts, vcfg)
-    boxes = view_boxes(verts, cams, vcfg.frame_quantile)
-    images = render_views(verts, scan.faces, scan.colors, cams, vcfg)
+    cams, boxes, images = render_scan(verts, scan.faces, scan.colors, vcfg)
     uv = np.stack([cam.project(truth) for cam in cams])
     return np.stack(images), boxes, uv
 
@@ -190,7 +188,7 @@ def make_negative_views(count: int, out: Path, num_landmarks: int, seed: int = 0
     """Renders of ``count`` scenes without a person (:func:`random_objects`), labels all NaN (heatmaps
     of zero: the detector learns to find nothing there). Same file layout as :func:`make_training_views`."""
     from blsm.io import atomic_write
-    from blsm.learn.multiview import ViewConfig, render_views, view_boxes, view_cameras
+    from blsm.learn.multiview import ViewConfig, render_scan
 
     if out.exists():
         return out
@@ -199,9 +197,9 @@ def make_negative_views(count: int, out: Path, num_landmarks: int, seed: int = 0
     imgs, boxes, owner = [], [], []
     for i in range(count):
         v, f, c = random_objects(rng)
-        cams = view_cameras(v, vcfg)
-        boxes.append(view_boxes(v, cams, vcfg.frame_quantile))
-        imgs.append(np.stack(render_views(v, f, c, cams, vcfg)))
+        cams, bx, im = render_scan(v, f, c, vcfg)
+        boxes.append(bx)
+        imgs.append(np.stack(im))
         owner += [i] * len(cams)
     n = sum(len(b) for b in boxes)
     with atomic_write(out, "wb") as fh:

@@ -332,15 +332,12 @@ def scan_keypoints(
     Raises:
         ValueError: ``"<where>: no person found in any of the C views"``, or the detector's error.
     """
-    from blsm.learn.multiview import render_views, view_boxes, view_cameras
+    from blsm.learn.multiview import render_scan
     from blsm.pose2d.detectors import MediaPipeDetector
 
     where = where or str(scan.meta.get("source", scan.meta.get("id", "scan")))
     detector = MediaPipeDetector() if detector is None else detector
-    vcfg = config.views
-    cameras = view_cameras(scan.vertices, vcfg)
-    boxes = view_boxes(scan.vertices, cameras, vcfg.frame_quantile)
-    images = render_views(scan.vertices, scan.faces, scan.colors, cameras, vcfg)
+    cameras, boxes, images = render_scan(scan.vertices, scan.faces, scan.colors, config.views)
     found_list = detector(images, boxes, cameras)
     if len(found_list) != len(cameras):
         raise ValueError(f"{where}: the detector answered {len(found_list)} of {len(cameras)} views")
@@ -368,22 +365,11 @@ def keypoints_from_detections(
     if not found.any():
         raise ValueError(f"{where}: no person found in any of the {c} views")
     P = projection_matrices(cameras)
-    points, kept, conf = triangulate_all(P, dets, size, config)
-    swapped = np.zeros(c, dtype=bool)
-    if config.swap_check:
-        swapped = fix_swaps(P, dets, points, config)
-        if swapped.any():
-            dets[swapped] = dets[swapped][:, list(MEDIAPIPE_MIRROR)]
-            points, kept, conf = triangulate_all(P, dets, size, config)
-    err = np.full((c, len(_MP_INDEX)), np.nan)
-    for j, k in enumerate(_MP_INDEX):
-        vis = found & (dets[:, k, 2] >= config.min_visibility)
-        if np.isfinite(points[k]).all() and vis.any():
-            err[vis, j] = reprojection_errors(P[vis], dets[vis, k, :2], points[k])
+    points, kept, conf, swapped, err = triangulate_views(P, dets, found, size, config, MEDIAPIPE_MIRROR)
     per_view = ViewResults(
         K=np.stack([cam.K for cam in cameras]), R=np.stack([cam.R for cam in cameras]),
         t=np.stack([cam.t for cam in cameras]), size=size, boxes=np.asarray(boxes, np.float64),
-        detections=dets, found=found, swapped=swapped, used=kept[:, _MP_INDEX], error_px=err,
+        detections=dets, found=found, swapped=swapped, used=kept[:, _MP_INDEX], error_px=err[:, _MP_INDEX],
     )  # fmt: skip
     return ScanKeypoints(
         names=list(BLSM_NAMES),
@@ -395,6 +381,31 @@ def keypoints_from_detections(
         detector=detector_name,
         per_view=per_view,
     )
+
+
+def triangulate_views(
+    P: np.ndarray, dets: np.ndarray, found: np.ndarray, size: tuple[int, int], config: MarkerlessConfig,
+    mirror: tuple[int, ...] | list[int],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`triangulate_all`, then :func:`fix_swaps` (swapped views' ``dets`` are exchanged in place
+    and everything triangulated again), then each view's reprojection error of every landmark.
+
+    Returns:
+        (points (M, 3), kept (C, M), confidence (M,), swapped (C,), error_px (C, M) NaN where unseen).
+    """
+    points, kept, conf = triangulate_all(P, dets, size, config)
+    swapped = np.zeros(len(P), dtype=bool)
+    if config.swap_check:
+        swapped = fix_swaps(P, dets, points, config, mirror)
+        if swapped.any():
+            dets[swapped] = dets[swapped][:, list(mirror)]
+            points, kept, conf = triangulate_all(P, dets, size, config)
+    err = np.full(kept.shape, np.nan)
+    for k in range(dets.shape[1]):
+        vis = found & (dets[:, k, 2] >= config.min_visibility)
+        if np.isfinite(points[k]).all() and vis.any():
+            err[vis, k] = reprojection_errors(P[vis], dets[vis, k, :2], points[k])
+    return points, kept, conf, swapped, err
 
 
 def true_keypoints(scan: Scan, model: BLSM, names: list[str] | tuple[str, ...] = BLSM_NAMES) -> np.ndarray:

@@ -28,10 +28,8 @@ from blsm.learn.markerless import (
     MarkerlessConfig,
     ScanKeypoints,
     ViewResults,
-    fix_swaps,
     projection_matrices,
-    reprojection_errors,
-    triangulate_all,
+    triangulate_views,
 )
 from blsm.learn.scans import Scan
 
@@ -76,16 +74,13 @@ def detect_landmarks(
     Raises:
         ValueError: ``"<where>: no person found in any of the C views"``.
     """
-    from blsm.learn.multiview import render_views, view_boxes, view_cameras
+    from blsm.learn.multiview import render_scan
     from blsm.pose2d.landmark_net import LandmarkDetector, mirror_index
 
     where = where or str(scan.meta.get("source", scan.meta.get("id", "scan")))
     detector = LandmarkDetector() if detector is None else detector
     mcfg = replace(config.markerless, min_visibility=config.min_confidence)
-    vcfg = mcfg.views
-    cameras = view_cameras(scan.vertices, vcfg)
-    boxes = view_boxes(scan.vertices, cameras, vcfg.frame_quantile)
-    images = render_views(scan.vertices, scan.faces, scan.colors, cameras, vcfg)
+    cameras, boxes, images = render_scan(scan.vertices, scan.faces, scan.colors, mcfg.views)
     dets = np.stack(detector(images, boxes, cameras)).astype(np.float64)  # (C, L, 3)
     names = list(detector.names)
     found = (dets[..., 2] >= mcfg.min_visibility).mean(1) >= config.person_fraction
@@ -94,19 +89,7 @@ def detect_landmarks(
     dets[~found] = np.nan
     P = projection_matrices(cameras)
     size = (cameras[0].width, cameras[0].height)
-    points, kept, conf = triangulate_all(P, dets, size, mcfg)
-    swapped = np.zeros(len(cameras), dtype=bool)
-    if mcfg.swap_check:
-        mirror = mirror_index(names)
-        swapped = fix_swaps(P, dets, points, mcfg, mirror)
-        if swapped.any():
-            dets[swapped] = dets[swapped][:, mirror]
-            points, kept, conf = triangulate_all(P, dets, size, mcfg)
-    err = np.full(kept.shape, np.nan)
-    for k in range(len(names)):
-        vis = found & (dets[:, k, 2] >= mcfg.min_visibility)
-        if np.isfinite(points[k]).all() and vis.any():
-            err[vis, k] = reprojection_errors(P[vis], dets[vis, k, :2], points[k])
+    points, kept, conf, swapped, err = triangulate_views(P, dets, found, size, mcfg, mirror_index(names))
     per_view = ViewResults(
         K=np.stack([c.K for c in cameras]), R=np.stack([c.R for c in cameras]), t=np.stack([c.t for c in cameras]),
         size=size, boxes=np.asarray(boxes, np.float64), detections=dets, found=found, swapped=swapped,

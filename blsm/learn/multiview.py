@@ -140,3 +140,12 @@ def render_views(
         )
         images.append((np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
     return images
+
+
+def render_scan(
+    vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, cfg: ViewConfig = ViewConfig()
+) -> tuple[list[Camera], np.ndarray, list[np.ndarray]]:
+    """The registration's views of a scan: (:func:`view_cameras`, :func:`view_boxes`, :func:`render_views`)."""
+    cameras = view_cameras(vertices, cfg)
+    boxes = view_boxes(vertices, cameras, cfg.frame_quantile)
+    return cameras, boxes, render_views(vertices, faces, colors, cameras, cfg)
