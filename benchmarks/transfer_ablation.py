@@ -40,6 +40,11 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "garments": ("clothing geometry: garments as meshes over the body (synth.garments)", ("garments",), "garments"),
     "occluders": ("occlusion: objects in front of the people in the scene (synth.occluders)", ("occluders",), "occluders"),
     "detail": ("skin, face and hand detail: eyes, brows, lips, facial hair, pores, knuckles (subjects.detail)", ("detail",), "detail"),
+    "crop192": ("crop size 192 instead of 128 (the packaged weights fine-tuned and scored at 192 px)", ("base",), "crop192"),
+    "imagenet_lite0": ("backbone pair, EfficientNet-Lite0 from ImageNet (not the packaged weights), 128 px", ("base",), "imagenet_lite0"),
+    "imagenet_lite2": ("backbone pair, EfficientNet-Lite2 from ImageNet (not the packaged weights), 128 px", ("base",), "imagenet_lite2"),
+    "augment_strong": ("augmentation strength: looser boxes, harsher colour (data.augment)", ("base",), "augment_strong"),
+    "garments_effects": ("clothing geometry and the camera, sensor and occlusion effects together", ("garments",), "garments_effects"),
 }
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 

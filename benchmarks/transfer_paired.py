@@ -33,7 +33,8 @@ def checkpoint(row: str) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", default="base")
-    ap.add_argument("--rows", nargs="+", default=["packaged", "effects", "truncation", "recipe", "plates", "combined", "garments", "occluders", "detail"])
+    ap.add_argument("--rows", nargs="+", default=["packaged", "effects", "truncation", "recipe", "plates", "combined", "garments", "occluders", "detail",
+                                                  "crop192", "imagenet_lite0", "imagenet_lite2", "augment_strong", "garments_effects"])
     ap.add_argument("--json", default=str(ROOT / "docs/figures/transfer_paired.json"))
     ap.add_argument("--boot", type=int, default=2000)
     args = ap.parse_args()
