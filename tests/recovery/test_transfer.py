@@ -4,6 +4,7 @@ box it is given); the MediaPipe reference itself is exercised by ``make bench`` 
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from PIL import Image
 
 from recovery import cli
+from recovery.config import load_config
 from recovery.eval.transfer import (
     COCO_NAMES,
     JOINT_BOX_GROWTH,
@@ -195,3 +197,23 @@ def test_no_reference_environment(real_folder, fake_root, tmp_path, capsys, monk
                      "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "setup_reference.sh" in err[0]
+
+
+def test_ablation_rows_share_one_budget():
+    """Every row of the transfer ablation (benchmarks/transfer_ablation.py) has a config that parses,
+    and every row trains on one budget (docs/transfer.md, "The ablation"): 800 steps of 32 crops;
+    the fine-tuning rows start from the packaged weights at one rate and schedule."""
+    root = Path(__file__).resolve().parents[2]
+    path = root / "benchmarks/transfer_ablation.py"
+    spec = importlib.util.spec_from_file_location("transfer_ablation", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    trained = {name: cfg for name, (_, _, cfg) in mod.ROWS.items() if cfg}
+    assert len(trained) >= 10 and "base" in trained
+    for name, config in trained.items():
+        cfg = load_config(root / f"configs/recovery/transfer/{config}.yaml")
+        assert (cfg.train.steps, cfg.train.batch_size) == (800, 32), name
+        if cfg.train.init:
+            assert cfg.train.init == "default" and cfg.optim.lr == 1e-4 and cfg.optim.warmup_steps == 50, name
+        else:
+            assert name.startswith("imagenet_") and cfg.model.pretrained, name
