@@ -22,6 +22,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.transfer_ablation import ROWS  # noqa: E402
 from recovery.eval import transfer as T  # noqa: E402
 from recovery.predictor import load_predictor  # noqa: E402
 
@@ -33,11 +34,11 @@ def checkpoint(row: str) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", default="base")
-    ap.add_argument("--rows", nargs="+", default=["packaged", "effects", "truncation", "recipe", "plates", "combined", "garments", "occluders", "detail",
-                                                  "crop192", "imagenet_lite0", "imagenet_lite2", "augment_strong", "garments_effects"])
+    ap.add_argument("--rows", nargs="+", help="rows of benchmarks/transfer_ablation.py (default: all but --reference)")
     ap.add_argument("--json", default=str(ROOT / "docs/figures/transfer_paired.json"))
     ap.add_argument("--boot", type=int, default=2000)
     args = ap.parse_args()
+    args.rows = args.rows or [r for r in ROWS if r != args.reference]
     torch.set_num_threads(2)
     cache = ROOT / "out/transfer/check/base/reference.json"
     command = T.reference_command(None)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -23,14 +24,11 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-
 @pytest.fixture(scope="session")
 def coloured_body(model):
     """``coloured_body(seed, yaw)``: a posed body of the packaged model (random angles within 0.15 rad
     of rest, turned by ``yaw`` about the vertical) as a scan with random vertex colours and exact
     ground truth."""
-    import numpy as np
-
     from blsm.learn.scans import Scan
 
     def make(seed: int, yaw: float) -> Scan:
