@@ -146,7 +146,11 @@ class PosesConfig:
 
     ``child_clips`` matches motions to age: when set, people younger than 18 (Anny's age) take
     library frames from these clips only (walking, playing) while adults take any clip; empty, every
-    person draws from every clip."""
+    person draws from every clip.
+
+    ``seated_rate`` and ``arms_rate`` (0, off, by default; :mod:`synth.postures`) widen the prior's
+    draws: the probability that a person sits on a box seat, and that each arm is drawn uniformly
+    within its joint limits (prior draws only; library frames stay as captured)."""
 
     source: str = "prior"
     prior: str = ""
@@ -157,6 +161,8 @@ class PosesConfig:
     plausible: bool = True
     max_redraws: int = 100
     child_clips: tuple[str, ...] = ()
+    seated_rate: float = 0.0
+    arms_rate: float = 0.0
 
     def __post_init__(self) -> None:
         if self.source not in ("prior", "library", "mix"):
@@ -167,6 +173,11 @@ class PosesConfig:
             raise ValueError("poses.clips, exclude_clips and child_clips need source: library or mix")
         if not 0.0 <= self.library_rate <= 1.0:
             raise ValueError(f"poses.library_rate must be in [0, 1], got {self.library_rate}")
+        for key in ("seated_rate", "arms_rate"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ValueError(f"poses.{key} must be in [0, 1], got {getattr(self, key)}")
+        if (self.seated_rate or self.arms_rate) and self.source == "library":
+            raise ValueError("poses.seated_rate and arms_rate change prior draws: they need source: prior or mix")
         if not 1 <= self.max_redraws <= 10000:
             raise ValueError(f"poses.max_redraws must be in [1, 10000], got {self.max_redraws}")
 
@@ -523,6 +534,12 @@ class GeneratorConfig:
     engine: EngineConfig = field(default_factory=EngineConfig)
     sequence: SequenceConfig = field(default_factory=SequenceConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
+
+    @property
+    def occluder_slots(self) -> int:
+        """The renderer's slots for objects that belong to no person: the scene's occluders and, with
+        ``poses.seated_rate``, one seat per person (:mod:`synth.postures`)."""
+        return (self.occluders.max if self.occluders.enabled else 0) + (self.people.max if self.poses.seated_rate else 0)
 
     def __post_init__(self) -> None:
         if self.labels.topology and self.pipeline == "raw":

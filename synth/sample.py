@@ -34,6 +34,7 @@ from synth import format as fmt
 from synth import labels as lab
 from synth.camera import outline_index, sample_camera
 from synth.config import GeneratorConfig
+from synth.postures import seats, vary
 from synth.render import PeopleRenderer, RenderMesh, people_window
 from synth.subjects import Subject, load_subject, pose_subject
 
@@ -219,17 +220,15 @@ class PoseSource:
     """Draws a pose (x, global orientation) from the prior or the motion library."""
 
     def __init__(self, cfg: GeneratorConfig) -> None:
+        import blsm
+        from blsm.mocap.plausible import PoseChecker
         from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
 
         self.cfg = cfg.poses
         self.prior_path = self.cfg.prior or DEFAULT_PRIOR
         self.prior = load_prior(self.prior_path)
-        self.checker = None
-        if self.cfg.plausible and self.cfg.source != "library":
-            import blsm
-            from blsm.mocap.plausible import PoseChecker
-
-            self.checker = PoseChecker(blsm.load())
+        self.checker = PoseChecker(blsm.load()) if self.cfg.plausible and self.cfg.source != "library" else None
+        self.model = blsm.load() if self.cfg.seated_rate or self.cfg.arms_rate else None
         self.clips: list[Any] = []
         if self.cfg.source != "prior":
             self.clips = self._load_clips()
@@ -272,10 +271,13 @@ class PoseSource:
         for redraws in range(self.cfg.max_redraws + 1):
             g = torch.Generator().manual_seed(int(rng.integers(2**62)))
             x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
+            varied = {}
+            if self.cfg.seated_rate or self.cfg.arms_rate:  # synth.postures; off, no draw is spent
+                x, varied = vary(x, self.model, self.cfg.seated_rate, self.cfg.arms_rate, rng)
             if self.checker is None:
-                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1}
+                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, **varied}
             if self.checker.check(torch.from_numpy(x)[None]).plausible[0]:
-                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, "redraws": redraws}
+                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, "redraws": redraws, **varied}
         raise ValueError(
             f"{self.prior_path}: no plausible pose in {self.cfg.max_redraws + 1} draws "
             "(a prior of implausible poses; set poses.plausible: false to use it as drawn)"
@@ -442,7 +444,7 @@ class SampleMaker:
                 denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
                 sampler=self.cfg.render.sampler, denoise_quality=self.cfg.render.denoise_quality,
                 garments=self.cfg.garments.enabled,
-                occluders=self.cfg.occluders.max if self.cfg.occluders.enabled else 0,
+                occluders=self.cfg.occluder_slots,
             )  # fmt: skip
             self._renderers[key] = r
         return r
@@ -460,13 +462,13 @@ class SampleMaker:
         outline = np.concatenate([p.outline for p in people])  # every person's hull vertices
         camera, cam_info = sample_camera(outline, cfg.camera, rng)
         back = self.background(rng, camera)
-        occluders, extra = [], None
+        occluders = seats(people, self.model.bone_names, rng) if cfg.poses.seated_rate else []
         if cfg.occluders.enabled:
             from synth.occluders import place_occluders
 
             o = cfg.occluders
-            occluders = place_occluders([footprint(p.outline) for p in people], camera, o.prob, o.max, cfg.people.gap, rng)
-            extra = {"occluders": [q.to_json() for q in occluders]}
+            occluders += place_occluders([footprint(p.outline) for p in people], camera, o.prob, o.max, cfg.people.gap, rng)
+        extra = {"occluders": [q.to_json() for q in occluders]} if cfg.occluder_slots else None
         frame, labels = self.render_frame(index, people, camera, cam_info, back, rng, occluders)
         return self.encode(index, camera, cam_info, back, people, frame, labels, extra)
 
