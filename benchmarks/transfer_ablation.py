@@ -45,6 +45,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "imagenet_lite2": ("backbone pair, EfficientNet-Lite2 from ImageNet (not the packaged weights), 128 px", ("base",), "imagenet_lite2"),
     "augment_strong": ("augmentation strength: looser boxes, harsher colour (data.augment)", ("base",), "augment_strong"),
     "garments_effects": ("clothing geometry and the camera, sensor and occlusion effects together", ("garments",), "garments_effects"),
+    "postures": ("postures: people seated on box seats, arms over their full range (synth.postures)", ("postures",), "postures"),
     "garments_effects_postures": ("garments_effects with postures: people seated on box seats, arms over their full range (synth.postures)",
                                   ("garments_postures",), "garments_effects_postures"),
 }
