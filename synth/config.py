@@ -552,6 +552,8 @@ class GeneratorConfig:
             raise ValueError(f"num must be at most {MAX_SAMPLES} (sample keys have nine digits), got {self.num}")
         if self.pipeline not in ("rigged", "raw", "blsm"):
             raise ValueError(f"pipeline must be rigged, raw or blsm, got {self.pipeline!r}")
+        if (self.poses.seated_rate or self.poses.arms_rate) and self.pipeline == "raw":
+            raise ValueError("poses.seated_rate and arms_rate need a posable pipeline (rigged or blsm), not raw")
         if self.subdivide and self.pipeline != "blsm":
             raise ValueError("subdivide applies to the blsm pipeline only")
         if self.garments.enabled and (self.pipeline != "rigged" or self.subjects.source != "anny"):

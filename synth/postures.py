@@ -103,7 +103,8 @@ def seat_under(shell: np.ndarray, joints: np.ndarray, bone_names: list[str], rng
     come forward enough to sit on (its top below :data:`SEAT_MIN_HEIGHT`).
 
     The seat's frame follows the pelvis: x from the right hip to the left, z forward (the thighs'
-    direction). It spans the hips plus 8-20 cm on each side; front to back, from the back of the
+    direction). It spans the hips plus 8-20 cm on each side (never wider than the person's own
+    sideways extent, so it stays inside their footprint and clear of other people); front to back, from the back of the
     buttocks (the shell's rearmost vertex below the hips) to 10 cm short of the nearer knee and
     behind the shins and feet (every vertex below 0.6 times the knees' height); its top
     is the lowest vertex of body, hair or clothes above that footprint, so the person rests on it.
@@ -119,6 +120,7 @@ def seat_under(shell: np.ndarray, joints: np.ndarray, bone_names: list[str], rng
     rel = shell[:, [0, 2]] - centre_hips
     u, w = rel @ ax, rel @ fwd  # sideways, forward
     half = 0.5 * float(np.linalg.norm((hip_l - hip_r)[[0, 2]])) + rng.uniform(*SEAT_WIDTH_MARGIN)
+    half = min(half, float(np.abs(u).max()))  # never wider than the person: it stays in their footprint
     front = min(float((knee_l[[0, 2]] - centre_hips) @ fwd), float((knee_r[[0, 2]] - centre_hips) @ fwd)) - 0.10
     pelvis_y = 0.5 * (hip_l[1] + hip_r[1])
     knee_y = 0.5 * (knee_l[1] + knee_r[1])

@@ -83,6 +83,11 @@ def test_the_seat_carries_a_seated_body_and_not_a_standing_one(model):
         assert v[over, 1].min() >= h - 1e-6  # nothing of the body inside the box
         assert v[over, 1].min() <= h + 1e-6  # and the body rests on its top
     assert found >= 4
+    # A body narrower than its hips plus the margin (x squeezed, the joints kept) gets a seat no
+    # wider than itself, so the seat stays in its footprint.
+    narrow = v * np.array([0.4, 1.0, 1.0])
+    seat = seat_under(narrow, j, list(model.bone_names), np.random.default_rng(0))
+    assert seat is not None and seat.size[0] / 2 <= np.abs(narrow[:, 0] - seat.centre[0]).max() + 1e-9
     rest = unconstrained_from_angles(torch.zeros(1, len(names), dtype=torch.float64), limits_t)[0].numpy()
     v, j = _posed(model, rest)  # standing (the bind pose)
     assert seat_under(v, j, list(model.bone_names), np.random.default_rng(0)) is None  # standing: no seat
@@ -95,6 +100,8 @@ def test_bad_posture_options_are_refused():
         PosesConfig(arms_rate=-0.1)
     with pytest.raises(ValueError, match="prior or mix"):
         PosesConfig(source="library", library="x", seated_rate=0.5)
+    with pytest.raises(ValueError, match="posable pipeline"):
+        GeneratorConfig(pipeline="raw", poses=PosesConfig(arms_rate=0.5))
     assert GeneratorConfig(poses=PosesConfig(seated_rate=0.5)).occluder_slots == GeneratorConfig().people.max
     assert GeneratorConfig().occluder_slots == 0
 
