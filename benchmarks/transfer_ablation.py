@@ -43,6 +43,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "crop192": ("crop size 192 instead of 128 (the packaged weights fine-tuned and scored at 192 px)", ("base",), "crop192"),
     "imagenet_lite0": ("backbone pair, EfficientNet-Lite0 from ImageNet (not the packaged weights), 128 px", ("base",), "imagenet_lite0"),
     "imagenet_lite2": ("backbone pair, EfficientNet-Lite2 from ImageNet (not the packaged weights), 128 px", ("base",), "imagenet_lite2"),
+    "imagenet_frozen": ("backbone frozen at its ImageNet weights (Lite0; rate 0, BatchNorm frozen), only the regressor learns", ("base",), "imagenet_frozen"),
     "augment_strong": ("augmentation strength: looser boxes, harsher colour (data.augment)", ("base",), "augment_strong"),
     "garments_effects": ("clothing geometry and the camera, sensor and occlusion effects together", ("garments",), "garments_effects"),
     "postures": ("postures: people seated on box seats, arms over their full range (synth.postures)", ("postures",), "postures"),
