@@ -153,6 +153,11 @@ def occluder_mesh(o: Occluder) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return p, f, colours
 
 
+def draw_colour(rng: np.random.Generator) -> np.ndarray:
+    """(3,) a linear albedo: a colour of :data:`PALETTE` varied by +-15 % per channel."""
+    return PALETTE[int(rng.integers(len(PALETTE)))] * rng.uniform(0.85, 1.15, 3)
+
+
 def _camera_centre(camera: Any) -> np.ndarray:
     return -np.asarray(camera.R, np.float64).T @ np.asarray(camera.t, np.float64)
 
@@ -197,7 +202,7 @@ def _draw(discs: list[tuple[np.ndarray, float]], cam: np.ndarray, gap: float, rn
     u = to_cam / max(dist, 1e-9)
     side = np.array([-u[1], u[0]])
     yaw = math.atan2(u[0], u[1]) + math.radians(rng.uniform(-25.0, 25.0))
-    colour = PALETTE[int(rng.integers(len(PALETTE)))] * rng.uniform(0.85, 1.15, 3)
+    colour = draw_colour(rng)
     seed = int(rng.integers(2**31))
     probe = Occluder(kind, (0.0, 0.0), tuple(float(s) for s in size), yaw, tuple(float(c) for c in colour), seed)
     lo, hi = r_p + gap + probe.radius, min(r_p + 2.0, 0.6 * dist - probe.radius)

@@ -30,15 +30,12 @@ import math
 import numpy as np
 import torch
 
-from synth.occluders import PALETTE, Occluder
+from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
+from synth.occluders import Occluder, draw_colour
 
 ARM_JOINTS = ("clavicle", "shoulder", "elbow", "wrist")
 SEAT_WIDTH_MARGIN = (0.08, 0.2)  # metres beyond the hips on each side
 SEAT_MIN_HEIGHT = 0.2  # a seat lower than this (metres) means the thighs did not come forward: no seat
-
-
-def _index(names: list[str], prefix: str) -> list[int]:
-    return [i for i, n in enumerate(names) if n.startswith(prefix)]
 
 
 def seated_angles(theta: np.ndarray, names: list[str], limits: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -72,8 +69,6 @@ def uniform_arm(theta: np.ndarray, names: list[str], limits: np.ndarray, side: s
 def vary(x: np.ndarray, model, seated_rate: float, arms_rate: float, rng: np.random.Generator) -> tuple[np.ndarray, dict]:
     """A prior draw ``x`` (47,) with the postures of the module docstring applied; returns the new
     unconstrained values and the ``motion`` entries that say what changed (empty: nothing)."""
-    from blsm.joint_limits import angles_from_unconstrained, unconstrained_from_angles
-
     limits_t = model.dof_table.limits_tensor()
     limits = limits_t.numpy()
     names = model.dof_names
@@ -104,10 +99,10 @@ def seat_under(shell: np.ndarray, joints: np.ndarray, bone_names: list[str], rng
 
     The seat's frame follows the pelvis: x from the right hip to the left, z forward (the thighs'
     direction). It spans the hips plus 8-20 cm on each side (never wider than the person's own
-    sideways extent, so it stays inside their footprint and clear of other people); front to back, from the back of the
-    buttocks (the shell's rearmost vertex below the hips) to 10 cm short of the nearer knee and
-    behind the shins and feet (every vertex below 0.6 times the knees' height); its top
-    is the lowest vertex of body, hair or clothes above that footprint, so the person rests on it.
+    sideways extent, so it stays inside their footprint and clear of other people); front to back,
+    from the back of the buttocks (the shell's rearmost vertex below the hips) to 10 cm short of the
+    nearer knee and behind the shins and feet (every vertex below 0.6 times the knees' height); its
+    top is the lowest vertex of body, hair or clothes above that footprint, so the person rests on it.
     """
     hip_l, hip_r = joints[bone_names.index("hip_l")], joints[bone_names.index("hip_r")]
     knee_l, knee_r = joints[bone_names.index("knee_l")], joints[bone_names.index("knee_r")]
@@ -121,27 +116,27 @@ def seat_under(shell: np.ndarray, joints: np.ndarray, bone_names: list[str], rng
     u, w = rel @ ax, rel @ fwd  # sideways, forward
     half = 0.5 * float(np.linalg.norm((hip_l - hip_r)[[0, 2]])) + rng.uniform(*SEAT_WIDTH_MARGIN)
     half = min(half, float(np.abs(u).max()))  # never wider than the person: it stays in their footprint
+    within = np.abs(u) <= half
     front = min(float((knee_l[[0, 2]] - centre_hips) @ fwd), float((knee_r[[0, 2]] - centre_hips) @ fwd)) - 0.10
     pelvis_y = 0.5 * (hip_l[1] + hip_r[1])
     knee_y = 0.5 * (knee_l[1] + knee_r[1])
-    shins = (shell[:, 1] < 0.6 * knee_y) & (np.abs(u) <= half)  # shins and feet: the seat stays behind them
+    shins = within & (shell[:, 1] < 0.6 * knee_y)  # shins and feet: the seat stays behind them
     if shins.any():
         front = min(front, float(w[shins].min()) - 0.02)
-    low = shell[:, 1] < pelvis_y  # the buttocks' and thighs' underside, not the back
-    back = float(w[low & (np.abs(u) <= half)].min()) if (low & (np.abs(u) <= half)).any() else -0.15
+    low = within & (shell[:, 1] < pelvis_y)  # the buttocks' and thighs' underside, not the back
+    back = float(w[low].min()) if low.any() else -0.15
     if front - back < 0.15:
         return None
-    over = (np.abs(u) <= half) & (w >= back) & (w <= front)
+    over = within & (w >= back) & (w <= front)
     if not over.any():
         return None
     top = float(shell[over, 1].min())
     if top < SEAT_MIN_HEIGHT:
         return None
     mid = centre_hips + fwd * (0.5 * (back + front))
-    yaw = math.atan2(ax[1] * -1.0, ax[0])  # the box's width axis (its x) along ax
-    colour = PALETTE[int(rng.integers(len(PALETTE)))] * rng.uniform(0.85, 1.15, 3)
-    return Occluder("box", (float(mid[0]), float(mid[1])), (2.0 * half, top, front - back), yaw,
-                    tuple(float(c) for c in np.clip(colour, 0.0, 1.0)), int(rng.integers(2**31)))  # fmt: skip
+    yaw = math.atan2(-ax[1], ax[0])  # the box's width axis (its x) along ax
+    colour = tuple(float(c) for c in draw_colour(rng))
+    return Occluder("box", (float(mid[0]), float(mid[1])), (2.0 * half, top, front - back), yaw, colour, int(rng.integers(2**31)))
 
 
 def seats(people: list, bone_names: list[str], rng: np.random.Generator) -> list[Occluder]:

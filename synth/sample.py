@@ -227,8 +227,9 @@ class PoseSource:
         self.cfg = cfg.poses
         self.prior_path = self.cfg.prior or DEFAULT_PRIOR
         self.prior = load_prior(self.prior_path)
-        self.checker = PoseChecker(blsm.load()) if self.cfg.plausible and self.cfg.source != "library" else None
-        self.model = blsm.load() if self.cfg.seated_rate or self.cfg.arms_rate else None
+        check = self.cfg.plausible and self.cfg.source != "library"
+        self.model = blsm.load() if check or self.cfg.seated_rate or self.cfg.arms_rate else None  # loaded once
+        self.checker = PoseChecker(self.model) if check else None
         self.clips: list[Any] = []
         if self.cfg.source != "prior":
             self.clips = self._load_clips()
