@@ -10,7 +10,13 @@ and single held-out scans, against the true correspondence (``gt_points``). See 
 ``mediapipe``: ``blsm.learn.markerless.scan_keypoints`` (rendered views, MediaPipe, Eq. 6.3);
 ``baseline``: the landmark registration (:func:`blsm.learn.register.register`, Eqs. 5.13-5.25);
 ``detector``: the same, with the landmarks located by the learnt detector on the renders
-(:mod:`blsm.learn.markerless_landmarks`, ``--detector FILE``).
+(:mod:`blsm.learn.markerless_landmarks`, ``--detector FILE``); ``exact``: the ceiling of keypoint
+registration, the model's keypoints of the true body with no noise, dropout or swap (confidence 1),
+plus with ``--extra`` the exact positions of more points: ``face`` (10 face landmarks), ``hands``
+(12 hand landmarks), ``spine`` (the pelvis, spine and neck joints), ``torso`` (14 torso landmarks),
+as a face, hand or body detector might add them (docs/markerless.md, "The ceiling")::
+
+    python benchmarks/register4d.py scans SCANS... --keypoints exact --extra hands,spine
 """
 
 from __future__ import annotations
@@ -32,6 +38,39 @@ from blsm.learn.register_config import DEFAULT_CONFIG, load_config
 from blsm.learn.registrations import save_registration
 from blsm.learn.scans import load_scan
 from blsm.learn.sequence_scans import make_sequence, perturb_keypoints, truth_keypoints
+
+EXTRA = {  # --keypoints exact --extra: landmark names of blsm/data/landmarks.yaml, or "+joint" model keypoints
+    "face": ["pronasale", "sellion", "menton", "tragion_l", "tragion_r", "infraorbitale_l", "infraorbitale_r",
+             "gonion_l", "gonion_r", "glabella"],
+    "hands": [f"{n}_{s}" for s in "lr" for n in ("radial_styloid", "ulnar_styloid", "mcp2", "mcp5", "dactylion", "thumb_tip")],
+    "spine": ["+pelvis", "+spine_01", "+spine_02", "+spine_03", "+neck"],
+    "torso": ["suprasternale", "substernale", "omphalion", "cervicale", "back_t8", "back_waist", "nipple_l", "nipple_r",
+              "iliocristale_l", "iliocristale_r", "asis_l", "asis_r", "psis_l", "psis_r"],
+}
+
+
+def exact_targets(model, scans, extra: list[str]):
+    """The ceiling: exact model keypoints of the true body (MediaPipe's 21 names, plus ``+joint``
+    extras) and exact landmark points (A_lm of ``gt_points``), confidence 1; their A_kp."""
+    from blsm.learn.keypoint_fit import KeypointSet
+    from blsm.learn.markerless import BLSM_NAMES
+
+    names = [*BLSM_NAMES, *(e[1:] for e in extra if e.startswith("+"))]
+    marks = [e for e in extra if not e.startswith("+")]
+    sel = default_selection(model)
+    idx = [sel.names.index(n) for n in marks]
+    kps = KeypointSet.of_model(model, names)
+    if marks:
+        lm = KeypointSet.of_selection(type(sel)(marks, sel.vertices[idx], sel.bary[idx]))
+        kps = KeypointSet(kps.names + lm.names, torch.cat([kps.joint, lm.joint]), torch.cat([kps.vertices, lm.vertices]),
+                          torch.cat([kps.bary, lm.bary]))
+    out = []
+    for s in scans:
+        _, pts = truth_keypoints(model, s, names)
+        g = np.asarray(s.gt_points, np.float64)
+        pts = np.concatenate([pts, (g[sel.vertices[idx].numpy()] * sel.bary[idx].numpy()[..., None]).sum(1)])
+        out.append(KeypointTargets(kps.names, pts, np.ones(len(kps.names)), {"stand_in": "exact keypoints"}))
+    return out, kps
 
 
 def targets_of(model, scans, how: str, seed: int, noise: float):
@@ -145,6 +184,10 @@ def run(model, scans, how, sequence, args, tag):
         from blsm.learn.register import register
 
         regs = [r for i in range(0, len(scans), 4) for r in register(model, scans[i:i + 4], cfg)]
+    elif how == "exact":
+        more = [n for e in args.extra.split(",") if e for n in EXTRA[e]]
+        targets, exact_kps = exact_targets(model, scans, more)
+        sel = None
     else:
         targets, sel = targets_of(model, scans, how, args.seed, args.noise)
     if how == "baseline":
@@ -155,6 +198,8 @@ def run(model, scans, how, sequence, args, tag):
             from blsm.learn.keypoint_regressor import load_keypoint_regressor
 
             kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
+        if how == "exact":
+            kps = exact_kps
         regs = register_keypoints(model, scans, targets, cfg, sequence=sequence, selection=sel, keypoints=kps)
     res = {"seconds": time.time() - t0, **errors(regs, scans), **extra}
     folder = args.out / tag
@@ -172,7 +217,8 @@ def main() -> None:
     ap.add_argument("--clip", type=Path, default=Path("out/motions/002_01.npz"))
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--step", type=int, default=2)
-    ap.add_argument("--keypoints", default="truth", help="truth | landmarks | mediapipe | baseline | detector")
+    ap.add_argument("--keypoints", default="truth", help="truth | landmarks | mediapipe | baseline | detector | exact")
+    ap.add_argument("--extra", default="", help=f"--keypoints exact: more exact points, any of {','.join(EXTRA)}")
     ap.add_argument("--noise", type=float, default=0.02)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--modes", default="together,single")
@@ -201,6 +247,7 @@ def main() -> None:
         for s, p in zip(scans, args.paths):
             s.meta.setdefault("id", p.stem)
         tag = f"scans_{args.keypoints}" + ("_regressor" if args.regressor is not None else "")
+        tag += f"_{args.extra.replace(',', '_')}" if args.keypoints == "exact" and args.extra else ""
         tag += f"_lmnoise{args.landmark_noise * 1000:g}" if args.landmark_noise > 0 else ""
         results["scans"] = run(model, scans, args.keypoints, False, args, tag)
         results["scans"]["ids"] = [s.meta["id"] for s in scans]

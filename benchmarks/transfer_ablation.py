@@ -13,7 +13,8 @@ when missing), then scores the run's ``last.pt``:
 
 The row ``packaged`` scores the packaged checkpoint itself (no fine-tuning). Every step is resumable
 (a finished step is skipped), so an interrupted run continues. Results go to ``docs/figures/transfer.json``
-and the table between the markers of ``docs/transfer.md``.
+and the table between the markers of ``docs/transfer.md``; rows not run now keep their entries of
+that file, so ``--rows X`` adds or updates row X only.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "imagenet_frozen": ("backbone frozen at its ImageNet weights (Lite0; rate 0, BatchNorm frozen), only the regressor learns", ("base",), "imagenet_frozen"),
     "augment_strong": ("augmentation strength: looser boxes, harsher colour (data.augment)", ("base",), "augment_strong"),
     "garments_effects": ("clothing geometry and the camera, sensor and occlusion effects together", ("garments",), "garments_effects"),
+    "randconv": ("style: half of the crops restyled by a random convolution (RandConv; data.effects.randconv_prob)", ("base",), "randconv"),
+    "fda": ("style: half of the crops given a real photograph's low-frequency spectrum (FDA; data.effects.fda_prob)", ("base",), "fda"),
     "postures": ("postures: people seated on box seats, arms over their full range (synth.postures)", ("postures",), "postures"),
     "garments_effects_postures": ("garments_effects with postures: people seated on box seats, arms over their full range (synth.postures)",
                                   ("garments_postures",), "garments_effects_postures"),
@@ -131,7 +134,11 @@ def main() -> int:
         print(f"[transfer] {name}: PA-MPJPE {r['pa_mpjpe_mm']:.1f} mm, transfer ratio {r['transfer']['transfer_ratio@0.1']:.2f}", flush=True)
     docs = ROOT / args.docs
     (docs / "figures").mkdir(parents=True, exist_ok=True)
-    (docs / "figures" / "transfer.json").write_text(json.dumps(results, indent=1))
+    figure = docs / "figures" / "transfer.json"
+    kept = {r["row"]: r for r in (json.loads(figure.read_text()) if figure.is_file() else []) if r["row"] in ROWS}
+    kept.update({r["row"]: r for r in results})
+    results = [kept[n] for n in ROWS if n in kept]  # the table in ROWS order
+    figure.write_text(json.dumps(results, indent=1))
     md = docs / "transfer.md"
     text = md.read_text() if md.is_file() else f"{BEGIN}\n{END}\n"
     if BEGIN in text and END in text:

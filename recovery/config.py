@@ -94,6 +94,19 @@ class EffectsSpec:
             [truncation_scale, 0.9], its top edge kept, so that the head stays and the legs or more
             leave the crop (people in photographs are often seen from the waist or knees up).
         truncation_scale: the smallest factor.
+        randconv_prob: probability of a random convolution of the crop's colours and textures
+            (RandConv, Xu et al., ICLR 2021), applied before the camera effects: a 3 -> 3 convolution
+            of size k in {1, 3, 5, 7} with weights N(0, 1 / (3 k^2)), its output matched to the
+            crop's per-channel mean and deviation, then mixed with the crop as ``a x + (1 - a) conv(x)``,
+            ``a`` uniform in [0, 1]. Labels unchanged.
+        fda_prob: probability of a Fourier domain adaptation of the crop to a real photograph (FDA,
+            Yang and Soatto, CVPR 2020), applied before the camera effects: the crop's lowest spatial
+            frequencies' amplitude (a centred square of half-side b, b uniform in 1..floor(fda_beta S)
+            for an S-pixel crop) replaced by that of a random square of a photograph of
+            ``fda_folder``, the phase kept. Labels unchanged.
+        fda_beta: the largest half-side, fraction of the crop.
+        fda_folder: a folder of real photographs (``.jpg``, ``.jpeg``, ``.png``), e.g. the backplate
+            bank of ``scripts/setup_backplates.py`` (``~/.cache/blsm-synth/backplates``).
     """
 
     blur_prob: float = 0.0
@@ -107,19 +120,33 @@ class EffectsSpec:
     occlusion_size: float = 0.5
     truncation_prob: float = 0.0
     truncation_scale: float = 0.45
+    randconv_prob: float = 0.0
+    fda_prob: float = 0.0
+    fda_beta: float = 0.02
+    fda_folder: str = ""
 
     def __post_init__(self) -> None:
-        probs = (self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob, self.truncation_prob)
+        probs = (self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob, self.truncation_prob,
+                 self.randconv_prob, self.fda_prob)
         ok = all(0 <= p <= 1 for p in probs) and self.blur_px >= 0.5 and 0 <= self.noise <= 0.5
-        ok &= 0.2 <= self.truncation_scale <= 0.9
+        ok &= 0.2 <= self.truncation_scale <= 0.9 and 0 < self.fda_beta <= 0.5
         ok &= 1 <= self.jpeg_quality <= 95 and self.lowres >= 1 and 0.2 <= self.occlusion_size <= 1
         if not ok:
             raise ValueError(f"data.effects: probabilities in [0, 1], blur_px >= 0.5, noise in [0, 0.5], jpeg_quality in "
-                             f"[1, 95], lowres >= 1, occlusion_size in [0.2, 1], truncation_scale in [0.2, 0.9]; got {self}")
+                             f"[1, 95], lowres >= 1, occlusion_size in [0.2, 1], truncation_scale in [0.2, 0.9], "
+                             f"fda_beta in (0, 0.5]; got {self}")
+        if self.fda_prob > 0 and not self.fda_folder:
+            raise ValueError("data.effects: fda_prob > 0 needs fda_folder (a folder of real photographs)")
 
     @property
     def active(self) -> bool:
-        return max(self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob, self.truncation_prob) > 0 or self.noise > 0
+        return max(self.blur_prob, self.jpeg_prob, self.lowres_prob, self.occlusion_prob, self.truncation_prob,
+                   self.randconv_prob, self.fda_prob) > 0 or self.noise > 0
+
+    @property
+    def styled(self) -> bool:
+        """A style effect (RandConv or FDA) is on."""
+        return max(self.randconv_prob, self.fda_prob) > 0
 
 
 @dataclass(frozen=True)

@@ -45,6 +45,7 @@ class BatchAugment:
                  effects: Any = None) -> None:
         self.crop, self.context, self.augment, self.seed = crop, context, augment, seed
         self.effects = effects if effects is not None and effects.active else None
+        self._photos: list[np.ndarray] | None = None  # FDA's photographs, read on first use
         self.dof_perm, self.dof_sign = dof_mirror[0].clone(), dof_mirror[1].clone().float()
         names = list(keypoint_names)
         self.kp_perm = torch.tensor([names.index(mirror_name(n)) for n in names])
@@ -65,6 +66,11 @@ class BatchAugment:
     def __call__(self, items: list[dict[str, Any]]) -> dict[str, torch.Tensor]:
         b = stack_items(items)
         out = self.apply(b, [self.params(int(k[0]), int(k[1])) for k in b["key"]])
+        if self.effects is not None and self.effects.styled:  # their own stream: (seed, epoch, item, 3)
+            rngs = [np.random.default_rng([self.seed, int(k[0]), int(k[1]), 3]) for k in b["key"]]
+            if self.effects.fda_prob > 0 and self._photos is None:
+                self._photos = read_photos(self.effects.fda_folder, 2 * self.crop)
+            out["image"] = apply_style(out["image"], self.effects, rngs, self._photos)
         if self.effects is not None:  # their own stream: (seed, epoch, item, 1)
             rngs = [np.random.default_rng([self.seed, int(k[0]), int(k[1]), 1]) for k in b["key"]]
             out["image"] = apply_effects(out["image"], self.effects, rngs)
@@ -176,5 +182,83 @@ def apply_effects(img: torch.Tensor, spec: Any, rngs: Sequence[np.random.Generat
             buf.seek(0)
             with Image.open(buf) as im:
                 x = torch.from_numpy(np.asarray(im.convert("RGB"), np.float32) / 255.0).permute(2, 0, 1)[None].to(x.dtype)
+        out[i] = x[0]
+    return out
+
+
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+def read_photos(folder: str, side: int) -> list[np.ndarray]:
+    """The photographs of ``folder`` (sorted by name), each scaled so that its shorter side is
+    ``side`` pixels, as (H, W, 3) uint8 arrays. A missing folder or one without photographs is a
+    ValueError naming it."""
+    from pathlib import Path
+
+    from PIL import Image
+
+    path = Path(folder).expanduser()
+    files = sorted(p for p in path.glob("*") if p.suffix.lower() in PHOTO_SUFFIXES) if path.is_dir() else []
+    if not files:
+        raise ValueError(f"{path}: data.effects.fda_folder holds no photographs (.jpg, .jpeg, .png)")
+    out = []
+    for f in files:
+        with Image.open(f) as im:
+            im = im.convert("RGB")
+            s = side / min(im.size)
+            out.append(np.asarray(im.resize((max(round(im.width * s), side), max(round(im.height * s), side)),
+                                            Image.Resampling.BILINEAR)))
+    return out
+
+
+def random_convolution(x: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+    """RandConv (Xu et al., ICLR 2021) on one (1, 3, S, S) crop: a random 3 -> 3 convolution of size
+    k in {1, 3, 5, 7}, weights N(0, 1 / (3 k^2)), reflect padding; its output matched to the crop's
+    per-channel mean and deviation, mixed with the crop by a uniform ``a``."""
+    import torch.nn.functional as F
+
+    k = int(rng.choice([1, 3, 5, 7]))
+    w = torch.from_numpy(rng.normal(0.0, 1.0 / math.sqrt(3 * k * k), size=(3, 3, k, k)).astype(np.float32)).to(x.dtype)
+    y = F.conv2d(F.pad(x, (k // 2,) * 4, mode="reflect") if k > 1 else x, w)
+    mx, sx = x.mean((2, 3), keepdim=True), x.std((2, 3), keepdim=True)
+    y = (y - y.mean((2, 3), keepdim=True)) / (y.std((2, 3), keepdim=True) + 1e-6) * sx + mx
+    a = float(rng.uniform())
+    return (a * x + (1 - a) * y).clamp(0.0, 1.0)
+
+
+def fourier_style(x: torch.Tensor, photo: np.ndarray, beta: float, rng: np.random.Generator) -> torch.Tensor:
+    """FDA (Yang and Soatto, CVPR 2020) on one (1, 3, S, S) crop: the amplitude of its lowest
+    frequencies (a centred square of half-side b, b uniform in 1..max(1, floor(beta S))) replaced by
+    that of a random square of ``photo`` (H, W, 3) uint8 scaled to S; the phase kept."""
+    import torch.nn.functional as F
+
+    s = x.shape[-1]
+    h, w = photo.shape[:2]
+    side = int(rng.integers(min(h, w) // 2, min(h, w) + 1))
+    y0, x0 = int(rng.integers(0, h - side + 1)), int(rng.integers(0, w - side + 1))
+    t = torch.from_numpy(np.ascontiguousarray(photo[y0:y0 + side, x0:x0 + side])).permute(2, 0, 1)[None].to(x.dtype) / 255.0
+    t = F.interpolate(t, size=(s, s), mode="area")
+    b = int(rng.integers(1, max(1, int(beta * s)) + 1))
+    fx = torch.fft.fftshift(torch.fft.fft2(x), dim=(-2, -1))
+    ft = torch.fft.fftshift(torch.fft.fft2(t), dim=(-2, -1))
+    amp, phase = fx.abs(), fx.angle()
+    c = s // 2
+    amp[..., c - b:c + b + 1, c - b:c + b + 1] = ft.abs()[..., c - b:c + b + 1, c - b:c + b + 1]
+    y = torch.fft.ifft2(torch.fft.ifftshift(torch.polar(amp, phase), dim=(-2, -1))).real
+    return y.clamp(0.0, 1.0)
+
+
+def apply_style(img: torch.Tensor, spec: Any, rngs: Sequence[np.random.Generator],
+                photos: Sequence[np.ndarray] | None) -> torch.Tensor:
+    """The style effects of :class:`recovery.config.EffectsSpec` on (B, 3, S, S) crops in [0, 1]:
+    RandConv, then FDA towards a real photograph. ``rngs``: one generator per item."""
+    out = img.clone()
+    for i, rng in enumerate(rngs):
+        u = rng.uniform(size=3)
+        x = out[i:i + 1]
+        if u[0] < spec.randconv_prob:
+            x = random_convolution(x, rng)
+        if u[1] < spec.fda_prob and photos:
+            x = fourier_style(x, photos[int(u[2] * len(photos))], spec.fda_beta, rng)
         out[i] = x[0]
     return out

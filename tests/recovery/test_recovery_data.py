@@ -237,6 +237,40 @@ def test_effects_touch_pixels_only_and_are_repeatable(cache, model):
         EffectsSpec(blur_prob=1.5)
 
 
+def test_style_effects_touch_pixels_only_and_fda_takes_the_photographs_colour(cache, model, tmp_path):
+    from PIL import Image
+
+    from recovery.config import EffectsSpec
+    from recovery.datasets.augment import fourier_style, random_convolution
+
+    spec = AugmentSpec(rotation_prob=1.0)
+    items = [cache[(1, i)] for i in range(len(cache))]
+    plain = _augment(cache, model, spec, seed=3)(items)
+    colour = np.array([128, 77, 179], np.uint8)  # a photograph of one colour: its spectrum is its DC term
+    Image.fromarray(np.broadcast_to(colour, (40, 60, 3)).copy()).save(tmp_path / "flat.png")
+    for one in (EffectsSpec(randconv_prob=1.0), EffectsSpec(fda_prob=1.0, fda_folder=str(tmp_path))):
+        aug = BatchAugment(CROP, cache.context, spec, 3, model.dof_mirror, cache.keypoint_names, effects=one)
+        b = aug(items)
+        for k in plain:
+            if k != "image":
+                assert torch.equal(b[k], plain[k]), k
+        assert 0 <= b["image"].min() and b["image"].max() <= 1
+        assert (b["image"] - plain["image"]).abs().mean() > 1e-3, one
+        assert torch.equal(aug(items[::-1])["image"], b["image"].flip(0))  # a function of (seed, epoch, item)
+    x = plain["image"][:1] * 0.5 + 0.25  # away from the clamp
+    rng = np.random.default_rng(0)
+    y = fourier_style(x, np.broadcast_to(colour, (40, 60, 3)), 0.05, rng)
+    # the DC amplitude is the photograph's: the crop's mean colour becomes the photograph's
+    assert np.allclose(y.mean((0, 2, 3)).numpy(), colour / 255.0, atol=0.01)
+    z = random_convolution(x, np.random.default_rng(1))
+    assert z.shape == x.shape and not torch.equal(z, x)
+    with pytest.raises(ValueError, match="fda_folder"):
+        EffectsSpec(fda_prob=0.5)
+    with pytest.raises(ValueError, match="holds no photographs"):
+        BatchAugment(CROP, cache.context, spec, 3, model.dof_mirror, cache.keypoint_names,
+                     effects=EffectsSpec(fda_prob=1.0, fda_folder=str(tmp_path / "none")))(items)
+
+
 def test_truncation_close_ups_keep_the_head_and_project_exactly(cache, model):
     from recovery.config import EffectsSpec
 
