@@ -45,7 +45,8 @@ class BatchAugment:
                  effects: Any = None) -> None:
         self.crop, self.context, self.augment, self.seed = crop, context, augment, seed
         self.effects = effects if effects is not None and effects.active else None
-        self._photos: list[np.ndarray] | None = None  # FDA's photographs, read on first use
+        fda = self.effects is not None and self.effects.fda_prob > 0  # FDA's photographs, read once
+        self._photos = read_photos(self.effects.fda_folder, 2 * crop) if fda else None
         self.dof_perm, self.dof_sign = dof_mirror[0].clone(), dof_mirror[1].clone().float()
         names = list(keypoint_names)
         self.kp_perm = torch.tensor([names.index(mirror_name(n)) for n in names])
@@ -68,8 +69,6 @@ class BatchAugment:
         out = self.apply(b, [self.params(int(k[0]), int(k[1])) for k in b["key"]])
         if self.effects is not None and self.effects.styled:  # their own stream: (seed, epoch, item, 3)
             rngs = [np.random.default_rng([self.seed, int(k[0]), int(k[1]), 3]) for k in b["key"]]
-            if self.effects.fda_prob > 0 and self._photos is None:
-                self._photos = read_photos(self.effects.fda_folder, 2 * self.crop)
             out["image"] = apply_style(out["image"], self.effects, rngs, self._photos)
         if self.effects is not None:  # their own stream: (seed, epoch, item, 1)
             rngs = [np.random.default_rng([self.seed, int(k[0]), int(k[1]), 1]) for k in b["key"]]
