@@ -134,6 +134,15 @@ def test_transfer_ratio_by_hand():
     assert rep["domains"]["synthetic"]["extent_ratio"] == pytest.approx([130 / 80, 1.0])
     lo, hi = rep["transfer_ratio_90"]
     assert lo == pytest.approx(0.25) and hi == pytest.approx(0.25)  # identical people: no spread
+    assert "transfer_ratio_synthetic_floor@0.1" not in rep
+    # the second reading: the synthetic median pose as the floor on photographs, here 4 of 17 joints
+    real = _domain("real", 4, 10, 8)
+    real.synthetic_floor = real.ref[..., :2].copy()
+    real.synthetic_floor[:, 4:, 0] += 50
+    rep = summarise(real, _domain("synthetic", 6, 15, 7))
+    assert rep["domains"]["real"]["pck@0.1"]["synthetic_floor"] == pytest.approx(4 / k)
+    assert rep["transfer_ratio_synthetic_floor@0.1"] == pytest.approx((10 - 4) / 8)
+    assert rep["transfer_ratio@0.1"] == pytest.approx(0.25)  # the first reading is unchanged
 
 
 def test_transfer_report(fake_root, real_folder, fake_reference, tmp_path, capsys):
@@ -157,8 +166,11 @@ def test_transfer_report(fake_root, real_folder, fake_reference, tmp_path, capsy
         assert len(d["extent_ratio"]) == 2 and all(v > 0 for v in d["extent_ratio"])
         assert set(d["per_joint@0.1"]) == set(COCO_NAMES)
         assert all(j["floor"] == 1.0 for j in d["per_joint@0.1"].values())
+    # the synthetic median pose in the real boxes: the same pose, so the same hits as the floor
+    assert real["pck@0.1"]["synthetic_floor"] == 1.0 and "synthetic_floor" not in syn["pck@0.1"]
     # no gain over the floor on synthetic images: no skill to transfer, the ratio is undefined
     assert np.isnan(rep["transfer_ratio@0.1"]) and rep["transfer_ratio_90"] is None
+    assert np.isnan(rep["transfer_ratio_synthetic_floor@0.1"])
     assert rep["reference"] == ["fake"]
     for name in ("report.md", "sheet_real.png", "sheet_synthetic.png"):
         assert (out / name).is_file()
