@@ -159,7 +159,7 @@ transfer-setup: $(STAMP)
 	$(BIN)/python scripts/setup_backplates.py
 	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
 
-# The transfer ablation of docs/transfer.md: one fine-tuning row per lever at one budget (5-6 hours
+# The transfer ablation of docs/transfer.md: one fine-tuning row per lever at one budget (about 6 hours
 # on 2 cores; resumable), scored on the held-out test set and the development set; then each row's paired
 # difference against the base row (docs/figures/transfer_paired.json).
 transfer-ablation: transfer-setup
