@@ -257,7 +257,9 @@ def apply_style(img: torch.Tensor, spec: Any, rngs: Sequence[np.random.Generator
         x = out[i:i + 1]
         if u[0] < spec.randconv_prob:
             x = random_convolution(x, rng)
-        if u[1] < spec.fda_prob and photos:
+        if u[1] < spec.fda_prob:
+            if not photos:
+                raise ValueError("FDA needs photographs (read_photos of data.effects.fda_folder)")
             x = fourier_style(x, photos[int(u[2] * len(photos))], spec.fda_beta, rng)
         out[i] = x[0]
     return out

@@ -25,9 +25,9 @@ For every person (a box of ``DIR/boxes.json``, or a person of the synthetic data
 ``gain = PCK(ours) - PCK(floor)`` per domain, and the **transfer ratio** ``gain(real) /
 gain(synthetic)`` at PCK@0.1. A second reading uses one floor for both domains, the synthetic
 images' median pose (what knowing the box and the training data's typical pose is worth):
-``(PCK(ours, real) - PCK(synthetic median, real)) / gain(synthetic)``, reported beside the ratio. A 90 % interval comes from a bootstrap over people (both domains
-resampled). On the synthetic side the reference is also scored against the labels (how far the
-reference itself is from the truth).
+``(PCK(ours, real) - PCK(synthetic median, real)) / gain(synthetic)``, reported beside the ratio.
+A 90 % interval comes from a bootstrap over people (both domains resampled). On the synthetic side
+the reference is also scored against the labels (how far the reference itself is from the truth).
 
 Writes ``OUT/report.json``, ``OUT/report.md`` and ``OUT/sheet_real.png`` / ``OUT/sheet_synthetic.png``
 (each person's crop: the predicted mesh, the reference's joints in green, ours in red). Reference
