@@ -49,6 +49,7 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "garments_effects": ("clothing geometry and the camera, sensor and occlusion effects together", ("garments",), "garments_effects"),
     "randconv": ("style: half of the crops restyled by a random convolution (RandConv; data.effects.randconv_prob)", ("base",), "randconv"),
     "fda": ("style: half of the crops given a real photograph's low-frequency spectrum (FDA; data.effects.fda_prob)", ("base",), "fda"),
+    "subjects": ("people: 240 Anny subjects instead of 24 (each seen about 10 times, not 100)", ("subjects",), "subjects"),
     "postures": ("postures: people seated on box seats, arms over their full range (synth.postures)", ("postures",), "postures"),
     "garments_effects_postures": ("garments_effects with postures: people seated on box seats, arms over their full range (synth.postures)",
                                   ("garments_postures",), "garments_effects_postures"),
