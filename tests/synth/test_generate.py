@@ -249,7 +249,12 @@ def test_backplates_meet_the_cameras_horizon(tiny, tmp_path):
             continue
         aligned += 1
         cam = doc["json"]["camera"]
-        assert row == pytest.approx(bg.horizon_row(np.asarray(cam["K"]), np.asarray(cam["R"])), abs=1e-4)
+        K, R = np.asarray(cam["K"]), np.asarray(cam["R"])
+        # K, R and the row are stored rounded to 1e-6 (synth.format.json_round): the row recomputed
+        # from them agrees to the rounding's first-order bound, v = cy - fy R21 / R11, not better
+        ratio = R[2, 1] / R[1, 1]
+        bound = 5e-7 * (2 + abs(ratio) + abs(K[1, 1]) * (1 + abs(ratio)) / abs(R[1, 1]))
+        assert abs(row - bg.horizon_row(K, R)) <= 1.01 * bound + 1e-9
         rgb, mask = doc["rgb"][..., :3].astype(float), doc["mask"] > 0
         r = int(round(row))
         if 2 <= r <= rgb.shape[0] - 3:  # sky (blue) just above the horizon, grass (green) below, beside the people
