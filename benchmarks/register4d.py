@@ -59,17 +59,18 @@ def exact_targets(model, scans, extra: list[str]):
     marks = [e for e in extra if not e.startswith("+")]
     sel = default_selection(model)
     idx = [sel.names.index(n) for n in marks]
+    sub = type(sel)(marks, sel.vertices[idx], sel.bary[idx])  # A_lm of the extra landmarks
     kps = KeypointSet.of_model(model, names)
     if marks:
-        lm = KeypointSet.of_selection(type(sel)(marks, sel.vertices[idx], sel.bary[idx]))
+        lm = KeypointSet.of_selection(sub)
         kps = KeypointSet(kps.names + lm.names, torch.cat([kps.joint, lm.joint]), torch.cat([kps.vertices, lm.vertices]),
                           torch.cat([kps.bary, lm.bary]))
     out = []
     for s in scans:
         _, pts = truth_keypoints(model, s, names)
-        g = np.asarray(s.gt_points, np.float64)
-        pts = np.concatenate([pts, (g[sel.vertices[idx].numpy()] * sel.bary[idx].numpy()[..., None]).sum(1)])
-        out.append(KeypointTargets(kps.names, pts, np.ones(len(kps.names)), {"stand_in": "exact keypoints"}))
+        lms = sub.select(torch.as_tensor(np.asarray(s.gt_points, np.float64))[None])[0].numpy()
+        out.append(KeypointTargets(kps.names, np.concatenate([pts, lms]), np.ones(len(kps.names)),
+                                   {"stand_in": "exact keypoints"}))
     return out, kps
 
 
@@ -184,22 +185,16 @@ def run(model, scans, how, sequence, args, tag):
         from blsm.learn.register import register
 
         regs = [r for i in range(0, len(scans), 4) for r in register(model, scans[i:i + 4], cfg)]
-    elif how == "exact":
-        more = [n for e in args.extra.split(",") if e for n in EXTRA[e]]
-        targets, exact_kps = exact_targets(model, scans, more)
-        sel = None
-    else:
-        targets, sel = targets_of(model, scans, how, args.seed, args.noise)
-    if how == "baseline":
-        pass
     else:  # sequence: one subject; else frame by frame (each its own subject, no smoothing; batched)
-        kps = None
-        if args.regressor is not None:  # A_kp learnt for the detector (blsm.learn.keypoint_regressor)
-            from blsm.learn.keypoint_regressor import load_keypoint_regressor
+        kps, sel = None, None
+        if how == "exact":  # exact targets come with their own A_kp
+            targets, kps = exact_targets(model, scans, [n for e in args.extra.split(",") if e for n in EXTRA[e]])
+        else:
+            targets, sel = targets_of(model, scans, how, args.seed, args.noise)
+            if args.regressor is not None:  # A_kp learnt for the detector (blsm.learn.keypoint_regressor)
+                from blsm.learn.keypoint_regressor import load_keypoint_regressor
 
-            kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
-        if how == "exact":
-            kps = exact_kps
+                kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
         regs = register_keypoints(model, scans, targets, cfg, sequence=sequence, selection=sel, keypoints=kps)
     res = {"seconds": time.time() - t0, **errors(regs, scans), **extra}
     folder = args.out / tag

@@ -22,15 +22,6 @@ from recovery.eval import transfer as T
 from recovery.predictor import load_predictor
 
 
-def domain(name: str, people: list, pr, command: list[str], check: Path):
-    ref = T.run_reference(people, command, check / "reference.json")
-    vis = T.visible_joints(ref, [p.size for p in people])
-    centre, side, ok = T.person_boxes(ref, vis)
-    floor = T.mean_pose_floor(ref, vis, centre, side, ok)
-    ours, views = T.predict_joints(pr, people, centre, side, ok)
-    return T.Domain(name, people, ref, vis, centre, side, ok, ours, floor), views
-
-
 def adapted(pr, crops: list[torch.Tensor]):
     """A copy of predictor ``pr`` whose BatchNorm statistics are those of ``crops`` and their mirrors."""
     out = copy.copy(pr)
@@ -61,8 +52,8 @@ def main() -> None:
     pr = load_predictor(args.checkpoint)
     real = T.read_boxes(Path("out/transfer_dev"))
     syn = T.synthetic_people(Path("out/data/test"), args.check / "synthetic_images", 400)
-    d_real, v_real = domain("real", real, pr, command, args.check)
-    d_syn, v_syn = domain("synthetic", syn, pr, command, args.check)
+    d_real, v_real = T.score_domain("real", real, command, args.check, pr)
+    d_syn, v_syn = T.score_domain("synthetic", syn, command, args.check, pr)
     print("| BatchNorm statistics | PCK@0.1 photographs | PCK@0.1 synthetic | ratio (photographs as scored, synthetic as is) |")
     print("|---|---:|---:|---:|")
     print(f"| as trained | {100 * pck(d_real):.1f} % | {100 * pck(d_syn):.1f} % | {T.summarise(d_real, d_syn)['transfer_ratio@0.1']:.2f} |")
@@ -70,8 +61,8 @@ def main() -> None:
     for label, crops in ((f"the photographs' {len(v_real)} crops", [to_tensor(v) for v in v_real]),
                          ("50 synthetic crops", [to_tensor(v) for v in v_syn[:50]])):
         p2 = adapted(pr, crops)
-        dr, _ = domain("real", real, p2, command, args.check)
-        ds, _ = domain("synthetic", syn, p2, command, args.check)
+        dr, _ = T.score_domain("real", real, command, args.check, p2)
+        ds, _ = T.score_domain("synthetic", syn, command, args.check, p2)
         print(f"| from {label} | {100 * pck(dr):.1f} % | {100 * pck(ds):.1f} % | {T.summarise(dr, d_syn)['transfer_ratio@0.1']:.2f} |")
 
 

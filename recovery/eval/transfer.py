@@ -455,7 +455,9 @@ def reference_command(spec: str | None) -> list[str]:
     return [str(python), str(REFERENCE_SCRIPT)]
 
 
-def _domain(name: str, people: list[Person], command: list[str], out: Path, pr: Any) -> tuple[Domain, list[dict[str, Any]]]:
+def score_domain(name: str, people: list[Person], command: list[str], out: Path, pr: Any) -> tuple[Domain, list[dict[str, Any]]]:
+    """One domain scored: the reference (answers cached in ``out/reference.json``), the box rule,
+    the floor and predictor ``pr``'s joints; returns the :class:`Domain` and the sheet's views."""
     if not people:
         raise ValueError(f"{name}: no people to score")
     ref = run_reference(people, command, out / "reference.json")
@@ -478,8 +480,8 @@ def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path
     real_people = read_boxes(real)
     out.mkdir(parents=True, exist_ok=True)
     syn_people = synthetic_people(synthetic, out / "synthetic_images", synthetic_people_max)
-    d_real, v_real = _domain("real", real_people, command, out, pr)
-    d_syn, v_syn = _domain("synthetic", syn_people, command, out, pr)
+    d_real, v_real = score_domain("real", real_people, command, out, pr)
+    d_syn, v_syn = score_domain("synthetic", syn_people, command, out, pr)
     d_real.synthetic_floor = mean_pose_floor(d_real.ref, d_real.vis, d_real.centre, d_real.side, d_real.ok,
                                              median_pose(d_syn.ref, d_syn.vis, d_syn.centre, d_syn.side, d_syn.ok))
     rep = summarise(d_real, d_syn)
