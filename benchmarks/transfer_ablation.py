@@ -53,7 +53,16 @@ ROWS = {  # name: (lever, data configs, recovery config)
     "postures": ("postures: people seated on box seats, arms over their full range (synth.postures)", ("postures",), "postures"),
     "garments_effects_postures": ("garments_effects with postures: people seated on box seats, arms over their full range (synth.postures)",
                                   ("garments_postures",), "garments_effects_postures"),
+    "garments_effects_subjects": ("garments_effects on data with 240 Anny subjects instead of 24 (the subjects lever)",
+                                  ("garments_subjects",), "garments_effects_subjects"),
+    "gpu_imagenet_lite0": ("backbone pair at the packaged crop budget: EfficientNet-Lite0 from ImageNet, 288k crops of the subjects data (GPU)",
+                           ("subjects",), "gpu_imagenet_lite0"),
+    "gpu_imagenet_lite2": ("backbone pair at the packaged crop budget: EfficientNet-Lite2 from ImageNet, 288k crops of the subjects data (GPU)",
+                           ("subjects",), "gpu_imagenet_lite2"),
 }
+# Rows trained on a lent GPU by benchmarks/figures/gpu_backbones.py: their exported checkpoint is put
+# at out/transfer/runs/ROW/last.pt by hand and only scored here.
+GPU_ROWS = ("gpu_imagenet_lite0", "gpu_imagenet_lite2")
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 
 
@@ -82,7 +91,12 @@ def row(name: str, out: Path, log: Path) -> dict:
     ck = "default"
     if config:
         runs = out / "runs" / name
-        if not (runs / "last.pt").is_file() or not (runs / "done").is_file():
+        if name in GPU_ROWS and not (runs / "last.pt").is_file():
+            raise SystemExit(f"transfer_ablation: {runs / 'last.pt'}: row {name} trains on a GPU; run "
+                             "benchmarks/figures/gpu_backbones.py there and put its exported file here")
+        if name in GPU_ROWS:
+            pass
+        elif not (runs / "last.pt").is_file() or not (runs / "done").is_file():
             seconds["train"] = run([str(BIN / "recovery"), "train", f"configs/recovery/transfer/{config}.yaml",
                                     "--out", str(runs), "--resume"], log)
             (runs / "done").write_text("")

@@ -151,7 +151,10 @@ def run(limit: float, outdir: Path) -> int:
     print(f"[gpu_backbones] unpacked in {time.perf_counter() - t0:.1f} s", flush=True)
     procs = {}
     for row in ROWS:
-        cmd = ["timeout", "-s", "INT", "-k", "60", str(int(limit)), sys.executable, "-m", "recovery.cli", "train",
+        # --foreground: the INT goes to the trainer alone; without it timeout also signals its
+        # process group, the trainer sees a second Ctrl-C and aborts without its checkpoint (the
+        # Lite0 run of 2026-11-27 kept the step-4000 checkpoint that way).
+        cmd = ["timeout", "--foreground", "-s", "INT", "-k", "60", str(int(limit)), sys.executable, "-m", "recovery.cli", "train",
                f"configs/recovery/transfer/{row}.yaml", "--out", f"out/gpu_runs/{row}"]
         log = open(outdir / f"{row}.train.log", "w")  # noqa: SIM115 (closed below)
         procs[row] = (subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT), log)

@@ -1,0 +1,85 @@
+"""Weight-space ensembles of the transfer ablation's fine-tuned networks (docs/transfer.md, "Weight
+averaging"): WiSE-FT (Wortsman et al., CVPR 2022: the packaged and a fine-tuned network's weights
+interpolated) and a uniform model soup (Wortsman et al., ICML 2022: several fine-tunes of the same
+start averaged), both known to make fine-tuned networks more robust to a shift of domain.
+
+    python benchmarks/transfer_soup.py        # after transfer_ablation.py --rows base randconv fda subjects
+
+Every network averaged starts from the packaged weights (``train.init: default``), so they share one
+architecture; every floating-point tensor of the network (BatchNorm statistics included) is the
+weighted mean, integer counters are the first network's. Each soup is scored like an ablation row:
+``recovery evaluate`` on the held-out test set and ``recovery transfer`` on the development set.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from recovery.checkpoint import read_checkpoint, resolve, save_atomic  # noqa: E402
+
+RUNS = "out/transfer/runs"
+SOUPS = {  # name: [(checkpoint, weight)]
+    "wise_subjects": [("default", 0.5), (f"{RUNS}/subjects/last.pt", 0.5)],
+    "soup4": [(f"{RUNS}/{r}/last.pt", 1.0) for r in ("base", "randconv", "fda", "subjects")],
+}
+
+
+def average(parts: list[tuple[str, float]], dst: Path) -> Path:
+    """Write the weighted mean of the networks of ``parts`` as an inference checkpoint.
+
+    Raises:
+        ValueError: the checkpoints describe different networks or BLSM models (one line).
+    """
+    cks = [(read_checkpoint(resolve(p)), w) for p, w in parts]
+    ref = cks[0][0]
+    for (ck, _), (p, _) in zip(cks, parts):
+        if ck["model_hash"] != ref["model_hash"] or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
+            raise ValueError(f"{p}: another network or BLSM model than {parts[0][0]}")
+    total = sum(w for _, w in cks)
+    state = {}
+    for k, v in ref["modules"]["model"].items():
+        state[k] = sum(w * ck["modules"]["model"][k].float() for ck, w in cks) / total if v.is_floating_point() else v
+    out = {k: ref[k] for k in ("format", "version", "task", "blsm_model_sha256", "model_hash", "step", "best", "saved")}
+    out.update(config=cks[-1][0]["config"], modules={"model": state}, train_summary={},
+               source=json.dumps([[p, w] for p, w in parts]))
+    save_atomic(out, dst)
+    return dst
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="out/transfer/soups")
+    args = ap.parse_args()
+    out = ROOT / args.out
+    rows = {}
+    for name, parts in SOUPS.items():
+        ck = out / f"{name}.pt"
+        if not ck.is_file():
+            average(parts, ck)
+        ev, tr = out / "eval" / name, out / "check" / name
+        bin_ = Path(sys.executable).parent / "recovery"
+        if not (ev / "metrics.json").is_file():
+            subprocess.run([str(bin_), "evaluate", str(ck), "out/data/test", "--out", str(ev)], cwd=ROOT, check=True)
+        if not (tr / "report.json").is_file():
+            subprocess.run([str(bin_), "transfer", str(ck), "--real", "out/transfer_dev", "--synthetic", "out/data/test",
+                            "--out", str(tr)], cwd=ROOT, check=True)
+        m, rep = json.loads((ev / "metrics.json").read_text()), json.loads((tr / "report.json").read_text())
+        real, syn = rep["domains"]["real"]["pck@0.1"], rep["domains"]["synthetic"]["pck@0.1"]
+        rows[name] = {"parts": parts, "pa_mpjpe_mm": m["pa_mpjpe_mm"], "real_pck@0.1": real["ours"],
+                      "synthetic_pck@0.1": syn["ours"], "transfer_ratio@0.1": rep["transfer_ratio@0.1"],
+                      "transfer_ratio_90": rep.get("transfer_ratio_90")}
+        print(f"[soup] {name}: PA-MPJPE {m['pa_mpjpe_mm']:.1f} mm, PCK@0.1 real {100 * real['ours']:.1f} %, "
+              f"synthetic {100 * syn['ours']:.1f} %, transfer ratio {rep['transfer_ratio@0.1']:.2f}", flush=True)
+    (ROOT / "docs/figures/transfer_soups.json").write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
