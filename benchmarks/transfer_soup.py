@@ -28,6 +28,7 @@ RUNS = "out/transfer/runs"
 SOUPS = {  # name: [(checkpoint, weight)]
     "wise_subjects": [("default", 0.5), (f"{RUNS}/subjects/last.pt", 0.5)],
     "soup4": [(f"{RUNS}/{r}/last.pt", 1.0) for r in ("base", "randconv", "fda", "subjects")],
+    "wise_garments_effects_subjects": [("default", 0.5), (f"{RUNS}/garments_effects_subjects/last.pt", 0.5)],
 }
 
 

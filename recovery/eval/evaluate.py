@@ -202,9 +202,14 @@ class Scores:
         return len(verts)
 
 
+PER_PERSON = ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm")
+"""The errors ``people.npz`` keeps per person (with ``index``, the person's item in the dataset, and ``subject``)."""
+
+
 def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch: int = 32, max_people: int = 0,
              log: Any = print, flip: bool = False) -> dict[str, Any]:
-    """Evaluate a checkpoint on a dataset folder; writes ``metrics.json`` and ``sheet.png`` into ``out``.
+    """Evaluate a checkpoint on a dataset folder; writes ``metrics.json``, ``people.npz`` (each
+    person's errors, :data:`PER_PERSON`) and ``sheet.png`` into ``out``.
 
     ``flip``: HMR-BLSM with flip test-time augmentation (:func:`recovery.models.hmr.flip_average`);
     recorded as ``flip_test`` in the metrics.
@@ -240,6 +245,9 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
     out.mkdir(parents=True, exist_ok=True)
     with atomic_write(out / "metrics.json", "w") as fh:
         fh.write(json.dumps(res, indent=1))
+    with atomic_write(out / "people.npz") as fh:  # per person, for paired comparisons of checkpoints
+        np.savez(fh, index=chosen, subject=info["subject"][chosen],
+                 **{k: np.asarray(scores.rows[k], np.float64) for k in PER_PERSON})
     arrays = {k: np.concatenate(v) for k, v in scores.keep.items() if v}
     results_sheet(arrays, np.asarray(scores.rows["pa_mpjpe_mm"], np.float64), scores.faces, scores.flabels,
                   out / "sheet.png")

@@ -7,6 +7,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from recovery_helpers import one_thread
@@ -112,7 +113,16 @@ def test_evaluate_draws_a_sheet(evaluated):
     out, _ = evaluated
     with Image.open(out / "sheet.png") as im:
         assert im.size[0] == 5 * 128 and im.size[1] > 4 * 128  # 5 columns, rows by quartile
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "sheet.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "people.npz", "sheet.png"]
+
+
+def test_evaluate_keeps_each_persons_errors(evaluated):
+    out, m = evaluated
+    with np.load(out / "people.npz") as z:
+        assert len(z["index"]) == m["people"] and len(set(z["index"].tolist())) == m["people"]
+        for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm"):  # the summary is their mean
+            assert z[k].shape == (m["people"],) and float(np.nanmean(z[k])) == pytest.approx(m[k])
+        assert z["subject"].shape == (m["people"],) and z["pa_mpjpe_mm"].std() > 0
 
 
 def test_evaluate_max_people(run_a, fake_root, tmp_path):
