@@ -128,13 +128,21 @@ recovery-data-after: $(STAMP)
 	for s in test val train_hdri train_sky train_mocap; do \
 		$(BIN)/synth generate configs/synth/$$s.yaml --out out/data_after/$$s --workers 2 --resume || exit 1; done
 
-# The packaged HMR-BLSM (docs/recovery.md): train (9000 steps, about 143 minutes on 2 cores measured
-# on 2026-11-26; an interrupted run continues),
-# evaluate on the held-out test set, export the float16 checkpoint. Needs recovery-data.
+# The packaged HMR-BLSM (docs/recovery.md): train the 9000-step network (about 143 minutes on 2 cores
+# measured on 2026-11-26; an interrupted run continues), evaluate it on the held-out test set and export
+# it (the start of every transfer row); then fine-tune it on the garments data with 240 subjects and
+# the sensor effects (about 20 minutes), average the two networks' weights, evaluate, export the float16
+# checkpoint. Needs recovery-data.
 recovery-model: $(STAMP)
 	$(BIN)/recovery train configs/recovery/hmr_blsm_lite0.yaml --out out/runs/hmr_blsm_lite0 --resume
 	$(BIN)/recovery evaluate out/runs/hmr_blsm_lite0/best.pt out/data/test --out out/eval/hmr_blsm_lite0
-	$(BIN)/recovery export out/runs/hmr_blsm_lite0/best.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_lite0/metrics.json
+	$(BIN)/recovery export out/runs/hmr_blsm_lite0/best.pt --out out/weights/hmr_blsm_lite0_9000.pt --report out/eval/hmr_blsm_lite0/metrics.json
+	# the transfer fine-tune of that network, averaged with it (docs/recovery.md, "The packaged model")
+	test -f out/transfer/data/garments_subjects/manifest.json || $(BIN)/synth generate configs/synth/transfer/garments_subjects.yaml --out out/transfer/data/garments_subjects --workers 2 --resume
+	$(BIN)/recovery train configs/recovery/transfer/garments_effects_subjects.yaml --out out/transfer/runs/garments_effects_subjects --resume
+	$(BIN)/python benchmarks/transfer_soup.py --only wise_garments_effects_subjects --no-score
+	$(BIN)/recovery evaluate out/transfer/soups/wise_garments_effects_subjects.pt out/data/test --out out/eval/hmr_blsm_default
+	$(BIN)/recovery export out/transfer/soups/wise_garments_effects_subjects.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_default/metrics.json
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
 # Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on

@@ -27,11 +27,15 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from blsm.io import sha256_file  # noqa: E402
+
 BIN = Path(sys.executable).parent
 TEST = "out/data/test"
 REAL = "out/transfer_dev"
 ROWS = {  # name: (lever, data configs, recovery config)
-    "packaged": ("the packaged checkpoint, not fine-tuned", (), None),
+    "packaged": ("the 9000-step network (packaged until 2026-11-27; every fine-tuning row starts from it), not fine-tuned", (), None),
     "base": ("fine-tuned on the base data (procedural sky; the protocol's reference row)", ("base",), "base"),
     "plates": ("backgrounds: real photographs as backplates, horizon-aligned", ("plates",), "plates"),
     "effects": ("camera and sensor effects, occluders (data.effects)", ("base",), "effects"),
@@ -59,10 +63,18 @@ ROWS = {  # name: (lever, data configs, recovery config)
                            ("subjects",), "gpu_imagenet_lite0"),
     "gpu_imagenet_lite2": ("backbone pair at the packaged crop budget: EfficientNet-Lite2 from ImageNet, 288k crops of the subjects data (GPU)",
                            ("subjects",), "gpu_imagenet_lite2"),
+    "default": ("the packaged checkpoint since 2026-11-27: garments_effects_subjects and the 9000-step network, "
+                "weights averaged half and half (WiSE-FT)", (), None),
 }
 # Rows trained on a lent GPU by benchmarks/figures/gpu_backbones.py: their exported checkpoint is put
 # at out/transfer/runs/ROW/last.pt by hand and only scored here.
 GPU_ROWS = ("gpu_imagenet_lite0", "gpu_imagenet_lite2")
+# The network every fine-tuning row starts from (``train.init`` of configs/recovery/transfer/*.yaml): the
+# 9000-step HMR-BLSM of configs/recovery/hmr_blsm_lite0.yaml, packaged until 2026-11-27 and kept in the
+# repository's history (make recovery-model makes it again).
+BASE_WEIGHTS = "out/weights/hmr_blsm_lite0_9000.pt"
+BASE_REVISION, BASE_PATH = "57d2400", "recovery/weights/hmr_blsm_default.pt"
+BASE_SHA256 = "cee4143ba259dd6fab034679f184fbc33fd70b4b7f124c9a4409508b418476e0"
 BEGIN, END = "<!-- transfer-ablation:begin -->", "<!-- transfer-ablation:end -->"
 
 
@@ -76,6 +88,32 @@ def run(cmd: list[str], log: Path) -> float:
     if res.returncode != 0:
         raise SystemExit(f"transfer_ablation: {' '.join(cmd)} failed (exit {res.returncode}); see {log}")
     return time.time() - t
+
+
+def base_weights() -> str:
+    """``BASE_WEIGHTS``: the file there (made by make recovery-model), else the one in the repository's
+    history (checked by its SHA-256)."""
+    path = ROOT / BASE_WEIGHTS
+    if not path.is_file():
+        blob = subprocess.run(["git", "show", f"{BASE_REVISION}:{BASE_PATH}"], cwd=ROOT, capture_output=True)
+        if blob.returncode != 0:
+            raise SystemExit(f"transfer_ablation: {path}: missing and not in this checkout's history "
+                             "(make recovery-model makes it)")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_bytes(blob.stdout)
+        if sha256_file(tmp) != BASE_SHA256:
+            tmp.unlink()
+            raise SystemExit(f"transfer_ablation: {BASE_REVISION}:{BASE_PATH}: not the 9000-step network (SHA-256 differs)")
+        tmp.replace(path)
+    return str(path)
+
+
+def checkpoint_of(name: str, out: Path) -> str:
+    """The checkpoint a row scores: its run's last.pt, the 9000-step network, or the packaged one."""
+    if name == "packaged":
+        return base_weights()
+    return "default" if name == "default" else str(out / "runs" / name / "last.pt")
 
 
 def row(name: str, out: Path, log: Path) -> dict:
@@ -92,14 +130,14 @@ def row(name: str, out: Path, log: Path) -> dict:
         if not (ROOT / "out/transfer/data" / d / "manifest.json").is_file():
             seconds[f"data_{d}"] = run([str(BIN / "synth"), "generate", f"configs/synth/transfer/{d}.yaml",
                                         "--out", f"out/transfer/data/{d}", "--workers", "2", "--resume"], log)
-    ck = "default"
+    ck = checkpoint_of(name, out)
     if config:
+        base_weights()
         runs = out / "runs" / name
         if name not in GPU_ROWS and not ((runs / "last.pt").is_file() and (runs / "done").is_file()):
             seconds["train"] = run([str(BIN / "recovery"), "train", f"configs/recovery/transfer/{config}.yaml",
                                     "--out", str(runs), "--resume"], log)
             (runs / "done").write_text("")
-        ck = str(runs / "last.pt")
     ev = out / "eval" / name
     if not (ev / "metrics.json").is_file():
         seconds["evaluate"] = run([str(BIN / "recovery"), "evaluate", ck, TEST, "--out", str(ev)], log)

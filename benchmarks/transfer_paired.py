@@ -1,11 +1,14 @@
 """Paired differences between the rows of the transfer ablation (docs/transfer.md): for each row,
 its gain over the floor minus the reference row's, on the same people, with a 90 % bootstrap
-interval over people (photographs and synthetic images apart), and its transfer ratio's change.
+interval over people (photographs and synthetic images apart), and its transfer ratio's change;
+and, where both rows' evaluations kept ``people.npz``, the change of PA-MPJPE on the held-out test set,
+person by person.
 
     python benchmarks/transfer_paired.py [--reference base] [--rows ...]
         [--json docs/figures/transfer_paired.json]
 
-Reads the checkpoints of out/transfer/runs/ROW/last.pt (``packaged``: the packaged one) and the
+Reads the checkpoints of out/transfer/runs/ROW/last.pt (``packaged``: the 9000-step network; ``default``: the
+packaged one) and the
 reference answers cached by ``recovery transfer`` in out/transfer/check/base/reference.json.
 """
 
@@ -22,13 +25,25 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.transfer_ablation import ROWS  # noqa: E402
+from benchmarks.transfer_ablation import ROWS, checkpoint_of  # noqa: E402
 from recovery.eval import transfer as T  # noqa: E402
 from recovery.predictor import load_predictor  # noqa: E402
 
 
-def checkpoint(row: str) -> str:
-    return "default" if row == "packaged" else str(ROOT / "out/transfer/runs" / row / "last.pt")
+def paired_pa_mpjpe(row: str, reference: str, boot: int, rng: np.random.Generator) -> dict | None:
+    """The row's PA-MPJPE on the held-out test set minus the reference row's, person by person, with
+    a 90 % bootstrap interval over people; None unless both rows' ``recovery evaluate`` kept
+    ``people.npz`` (made since 2026-11-27)."""
+    files = [ROOT / "out/transfer/eval" / r / "people.npz" for r in (row, reference)]
+    if not all(f.is_file() for f in files):
+        return None
+    (ia, a), (ib, b) = ((z["index"], z["pa_mpjpe_mm"]) for z in (np.load(f) for f in files))
+    if not np.array_equal(ia, ib):
+        raise SystemExit(f"{files[0]}: not the same test people as {files[1]}")
+    d = a - b
+    means = d[rng.integers(0, len(d), (boot, len(d)))].mean(1)
+    return {"pa_mpjpe_change_mm": float(d.mean()),
+            "interval_90": [float(np.percentile(means, 5)), float(np.percentile(means, 95))]}
 
 
 def main() -> int:
@@ -54,7 +69,7 @@ def main() -> int:
         setup[name] = (people, ref, vis, centre, side, ok)
         hits[name] = {"joints": vis[ok].sum(1), "floor": T.hits(floor[ok], ref[ok], vis[ok], side[ok], 0.1)}
     for row in [args.reference, *args.rows]:
-        pr = load_predictor(checkpoint(row))
+        pr = load_predictor(checkpoint_of(row, ROOT / "out/transfer"))
         for name, (people, ref, vis, centre, side, ok) in setup.items():
             ours, _ = T.predict_joints(pr, people, centre, side, ok)
             hits[name][row] = T.hits(ours[ok], ref[ok], vis[ok], side[ok], 0.1)
@@ -75,12 +90,17 @@ def main() -> int:
         ratio = draws["real"][0] / draws["synthetic"][0] - draws["real"][1] / draws["synthetic"][1]
         res["ratio_change"] = float(ratio[0])
         res["ratio_change_90"] = [float(np.percentile(ratio[1:], 5)), float(np.percentile(ratio[1:], 95))]
+        pa = paired_pa_mpjpe(row, args.reference, args.boot, rng)
+        if pa:
+            res["test_pa_mpjpe"] = pa
         out.append(res)
         print(f"{row} vs {args.reference}: real gain {100 * res['real']['gain_change']:+.1f} points "
               f"({100 * res['real']['interval_90'][0]:+.1f} to {100 * res['real']['interval_90'][1]:+.1f}), synthetic "
               f"{100 * res['synthetic']['gain_change']:+.1f} ({100 * res['synthetic']['interval_90'][0]:+.1f} to "
               f"{100 * res['synthetic']['interval_90'][1]:+.1f}); ratio {res['ratio_change']:+.2f} "
-              f"({res['ratio_change_90'][0]:+.2f} to {res['ratio_change_90'][1]:+.2f})", flush=True)
+              f"({res['ratio_change_90'][0]:+.2f} to {res['ratio_change_90'][1]:+.2f})"
+              + (f"; test PA-MPJPE {pa['pa_mpjpe_change_mm']:+.2f} mm ({pa['interval_90'][0]:+.2f} to "
+                 f"{pa['interval_90'][1]:+.2f})" if pa else ""), flush=True)
     Path(args.json).write_text(json.dumps(out, indent=1))
     return 0
 

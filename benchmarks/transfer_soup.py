@@ -3,9 +3,11 @@ averaging"): WiSE-FT (Wortsman et al., CVPR 2022: the packaged and a fine-tuned 
 interpolated) and a uniform model soup (Wortsman et al., ICML 2022: several fine-tunes of the same
 start averaged), both known to make fine-tuned networks more robust to a shift of domain.
 
-    python benchmarks/transfer_soup.py        # after transfer_ablation.py --rows base randconv fda subjects
+    python benchmarks/transfer_soup.py [--only NAME ...]   # after transfer_ablation.py --rows base randconv fda subjects garments_effects_subjects
 
-Every network averaged starts from the packaged weights (``train.init: default``), so they share one
+``wise_garments_effects_subjects`` is the packaged checkpoint (make recovery-model exports it).
+
+Every network averaged starts from the 9000-step network (``train.init`` of the rows), so they share one
 architecture; every floating-point tensor of the network (BatchNorm statistics included) is the
 weighted mean, integer counters are the first network's. Each soup is scored like an ablation row:
 ``recovery evaluate`` on the held-out test set and ``recovery transfer`` on the development set.
@@ -22,13 +24,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.transfer_ablation import base_weights  # noqa: E402
 from recovery.checkpoint import read_checkpoint, resolve, save_atomic  # noqa: E402
 
 RUNS = "out/transfer/runs"
+BASE = "out/weights/hmr_blsm_lite0_9000.pt"  # the 9000-step network every fine-tuning row starts from
 SOUPS = {  # name: [(checkpoint, weight)]
-    "wise_subjects": [("default", 0.5), (f"{RUNS}/subjects/last.pt", 0.5)],
+    "wise_subjects": [(BASE, 0.5), (f"{RUNS}/subjects/last.pt", 0.5)],
     "soup4": [(f"{RUNS}/{r}/last.pt", 1.0) for r in ("base", "randconv", "fda", "subjects")],
-    "wise_garments_effects_subjects": [("default", 0.5), (f"{RUNS}/garments_effects_subjects/last.pt", 0.5)],
+    "wise_garments_effects_subjects": [(BASE, 0.5), (f"{RUNS}/garments_effects_subjects/last.pt", 0.5)],
 }
 
 
@@ -57,13 +61,21 @@ def average(parts: list[tuple[str, float]], dst: Path) -> Path:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/transfer/soups")
+    ap.add_argument("--only", nargs="+", choices=list(SOUPS), help="these soups (default: all)")
+    ap.add_argument("--no-score", action="store_true", help="only write the averaged checkpoints")
     args = ap.parse_args()
     out = ROOT / args.out
-    rows = {}
-    for name, parts in SOUPS.items():
+    base_weights()
+    figure = ROOT / "docs/figures/transfer_soups.json"
+    rows = json.loads(figure.read_text()) if figure.is_file() else {}
+    for name in args.only or SOUPS:
+        parts = SOUPS[name]
         ck = out / f"{name}.pt"
         if not ck.is_file():
             average(parts, ck)
+        if args.no_score:
+            print(f"[soup] {name}: {ck}", flush=True)
+            continue
         ev, tr = out / "eval" / name, out / "check" / name
         bin_ = Path(sys.executable).parent / "recovery"
         if not (ev / "metrics.json").is_file():
@@ -78,7 +90,7 @@ def main() -> int:
                       "transfer_ratio_90": rep.get("transfer_ratio_90")}
         print(f"[soup] {name}: PA-MPJPE {m['pa_mpjpe_mm']:.1f} mm, PCK@0.1 real {100 * real['ours']:.1f} %, "
               f"synthetic {100 * syn['ours']:.1f} %, transfer ratio {rep['transfer_ratio@0.1']:.2f}", flush=True)
-    (ROOT / "docs/figures/transfer_soups.json").write_text(json.dumps(rows, indent=1))
+    figure.write_text(json.dumps(rows, indent=1))
     return 0
 
 
