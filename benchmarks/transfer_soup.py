@@ -8,8 +8,7 @@ start averaged), both known to make fine-tuned networks more robust to a shift o
 ``wise_garments_effects_subjects`` is the packaged checkpoint (make recovery-model exports it).
 
 Every network averaged starts from the 9000-step network (``train.init`` of the rows), so they share one
-architecture; every floating-point tensor of the network (BatchNorm statistics included) is the
-weighted mean, integer counters are the first network's. Each soup is scored like an ablation row:
+architecture (:func:`recovery.checkpoint.average_checkpoints`). Each soup is scored like an ablation row:
 ``recovery evaluate`` on the held-out test set and ``recovery transfer`` on the development set.
 """
 
@@ -25,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.transfer_ablation import base_weights  # noqa: E402
-from recovery.checkpoint import read_checkpoint, resolve, save_atomic  # noqa: E402
+from recovery.checkpoint import average_checkpoints  # noqa: E402
 
 RUNS = "out/transfer/runs"
 BASE = "out/weights/hmr_blsm_lite0_9000.pt"  # the 9000-step network every fine-tuning row starts from
@@ -34,28 +33,6 @@ SOUPS = {  # name: [(checkpoint, weight)]
     "soup4": [(f"{RUNS}/{r}/last.pt", 1.0) for r in ("base", "randconv", "fda", "subjects")],
     "wise_garments_effects_subjects": [(BASE, 0.5), (f"{RUNS}/garments_effects_subjects/last.pt", 0.5)],
 }
-
-
-def average(parts: list[tuple[str, float]], dst: Path) -> Path:
-    """Write the weighted mean of the networks of ``parts`` as an inference checkpoint.
-
-    Raises:
-        ValueError: the checkpoints describe different networks or BLSM models (one line).
-    """
-    cks = [(read_checkpoint(resolve(p)), w) for p, w in parts]
-    ref = cks[0][0]
-    for (ck, _), (p, _) in zip(cks, parts):
-        if ck["model_hash"] != ref["model_hash"] or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
-            raise ValueError(f"{p}: another network or BLSM model than {parts[0][0]}")
-    total = sum(w for _, w in cks)
-    state = {}
-    for k, v in ref["modules"]["model"].items():
-        state[k] = sum(w * ck["modules"]["model"][k].float() for ck, w in cks) / total if v.is_floating_point() else v
-    out = {k: ref[k] for k in ("format", "version", "task", "blsm_model_sha256", "model_hash", "step", "best", "saved")}
-    out.update(config=cks[-1][0]["config"], modules={"model": state}, train_summary={},
-               source=json.dumps([[p, w] for p, w in parts]))
-    save_atomic(out, dst)
-    return dst
 
 
 def main() -> int:
@@ -72,7 +49,7 @@ def main() -> int:
         parts = SOUPS[name]
         ck = out / f"{name}.pt"
         if not ck.is_file():
-            average(parts, ck)
+            average_checkpoints(parts, ck)
         if args.no_score:
             print(f"[soup] {name}: {ck}", flush=True)
             continue

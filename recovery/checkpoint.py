@@ -67,3 +67,35 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if int(ck.get("version", -1)) != CHECKPOINT_VERSION:
         raise ValueError(f"{path}: checkpoint version {ck.get('version')} (this code reads {CHECKPOINT_VERSION})")
     return ck
+
+
+def average_checkpoints(parts: list[tuple[str | Path, float]], dst: str | Path) -> Path:
+    """Write the weighted mean of the networks of ``parts`` (``(checkpoint, weight)``; ``default``
+    allowed) as an inference checkpoint: WiSE-FT (Wortsman et al., CVPR 2022) for a network and its
+    own fine-tune, a model soup (Wortsman et al., ICML 2022) for several fine-tunes of one start.
+
+    Every floating-point tensor of the network (BatchNorm statistics included) is the weighted mean;
+    integer counters are the first network's; the config is the last one's. The networks must be
+    the same (``model_hash``) for the same BLSM model file.
+
+    Raises:
+        ValueError: one line naming the file: unreadable, another network or BLSM model, no
+            positive total weight.
+    """
+    if not parts or sum(w for _, w in parts) <= 0 or any(w < 0 for _, w in parts):
+        raise ValueError(f"{dst}: weights must be >= 0 with a positive sum")
+    cks = [(read_checkpoint(resolve(p)), float(w)) for p, w in parts]
+    ref = cks[0][0]
+    for (ck, _), (p, _) in zip(cks, parts):
+        if ck.get("model_hash") != ref.get("model_hash") or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
+            raise ValueError(f"{resolve(p)}: another network or BLSM model than {resolve(parts[0][0])}")
+    total = sum(w for _, w in cks)
+    state = {}
+    for k, v in ref["modules"]["model"].items():
+        state[k] = (sum(w * ck["modules"]["model"][k].float() for ck, w in cks) / total
+                    if v.is_floating_point() else v)
+    out = {k: ref.get(k) for k in ("format", "version", "task", "blsm_model_sha256", "model_hash", "step", "best", "saved")}
+    out.update(config=cks[-1][0]["config"], modules={"model": state}, train_summary={},
+               source=" + ".join(f"{w:g} x {p}" for p, w in parts))
+    save_atomic(out, Path(dst))
+    return Path(dst)

@@ -69,3 +69,25 @@ def test_packaged_checkpoint_predicts_the_numbers_it_predicted_when_packaged():
            "keypoints_3d": out.keypoints_3d[:, :3]}
     for key, want in BEFORE.items():  # a tolerance for other CPUs' kernels; bit-identical on this one
         torch.testing.assert_close(got[key], torch.tensor(want), rtol=0, atol=1e-4, msg=key)
+
+
+def test_average_checkpoints_is_the_weighted_mean_and_refuses_other_networks(run_a, tmp_path):
+    from recovery.checkpoint import average_checkpoints, save_atomic
+
+    a = read_checkpoint(run_a / "last.pt")
+    shifted = {**a, "modules": {**a["modules"], "model": {
+        k: v + 1 if v.is_floating_point() else v for k, v in a["modules"]["model"].items()}}}
+    save_atomic(shifted, tmp_path / "b.pt")
+    out = average_checkpoints([(run_a / "last.pt", 3.0), (tmp_path / "b.pt", 1.0)], tmp_path / "mean.pt")
+    mean = read_checkpoint(out)["modules"]["model"]
+    for k, v in a["modules"]["model"].items():  # (3 a + (a + 1)) / 4 = a + 1/4; counters kept
+        want = v.float() + 0.25 if v.is_floating_point() else v
+        torch.testing.assert_close(mean[k], want, rtol=0, atol=1e-5)
+    from recovery.predictor import load_predictor
+
+    assert load_predictor(out).config.task == "hmr_blsm"  # an inference checkpoint
+    with pytest.raises(ValueError, match="another network"):  # the packaged network is another config
+        average_checkpoints([(run_a / "last.pt", 1.0), ("default", 1.0)], tmp_path / "x.pt")
+    with pytest.raises(ValueError, match="positive sum"):
+        average_checkpoints([(run_a / "last.pt", 0.0)], tmp_path / "y.pt")
+    assert not (tmp_path / "x.pt").exists() and not (tmp_path / "y.pt").exists()
