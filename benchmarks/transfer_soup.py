@@ -1,5 +1,5 @@
 """Weight-space ensembles of the transfer ablation's fine-tuned networks (docs/transfer.md, "Weight
-averaging"): WiSE-FT (Wortsman et al., CVPR 2022: the packaged and a fine-tuned network's weights
+averaging"): WiSE-FT (Wortsman et al., CVPR 2022: a network's weights and its fine-tune's
 interpolated) and a uniform model soup (Wortsman et al., ICML 2022: several fine-tunes of the same
 start averaged), both known to make fine-tuned networks more robust to a shift of domain.
 
@@ -23,11 +23,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.transfer_ablation import BASE_WEIGHTS as BASE  # noqa: E402
 from benchmarks.transfer_ablation import base_weights  # noqa: E402
 from recovery.checkpoint import average_checkpoints  # noqa: E402
 
 RUNS = "out/transfer/runs"
-BASE = "out/weights/hmr_blsm_lite0_9000.pt"  # the 9000-step network every fine-tuning row starts from
 SOUPS = {  # name: [(checkpoint, weight)]
     "wise_subjects": [(BASE, 0.5), (f"{RUNS}/subjects/last.pt", 0.5)],
     "soup4": [(f"{RUNS}/{r}/last.pt", 1.0) for r in ("base", "randconv", "fda", "subjects")],
@@ -48,8 +48,7 @@ def main() -> int:
     for name in args.only or SOUPS:
         parts = SOUPS[name]
         ck = out / f"{name}.pt"
-        if not ck.is_file():
-            average_checkpoints(parts, ck)
+        average_checkpoints(parts, ck)  # always again: a second, and never stale after a retrained part
         if args.no_score:
             print(f"[soup] {name}: {ck}", flush=True)
             continue
