@@ -1,5 +1,5 @@
 """The transfer ablation's backbone pair at the packaged network's crop budget, on a lent GPU
-(docs/transfer.md, "Backbone pair at a GPU budget").
+(docs/transfer.md, "The backbone pair at the packaged network's crop budget, on a GPU").
 
 EfficientNet-Lite0 and Lite2 from ImageNet, each trained for 288k crops (the packaged network's
 budget) on the `subjects` lever data (configs/synth/transfer/subjects.yaml: 240 Anny people,
@@ -7,10 +7,10 @@ budget) on the `subjects` lever data (configs/synth/transfer/subjects.yaml: 240 
 machine has PyTorch but neither kornia nor the weight wheels, and a call carries 64 MiB with the
 tracked tree (26 MB), so:
 
-    python benchmarks/figures/gpu_backbones.py carry      # here: out/gpucarry (about 30 MB)
+    python benchmarks/figures/gpu_backbones.py carry      # here: out/gpucarry (32 MiB)
     # there (device run, carry out/gpucarry):
-    python3 benchmarks/figures/gpu_backbones.py run --limit 420
-    # back here: score each exported file as the ablation rows are
+    python3 benchmarks/figures/gpu_backbones.py run --limit 440 --out $OUT
+    # back here: each exported ROW.pt to out/transfer/runs/ROW/last.pt, then scored as the ablation rows are
     python benchmarks/transfer_ablation.py --rows gpu_imagenet_lite0 gpu_imagenet_lite2
 
 ``carry`` writes the crop cache of the data (images as JPEG quality 90, the parts map compressed;
