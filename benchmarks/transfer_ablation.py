@@ -116,14 +116,26 @@ def checkpoint_of(name: str, out: Path) -> str:
     return "default" if name == "default" else str(out / "runs" / name / "last.pt")
 
 
+def score(ck: str, ev: Path, tr: Path, log: Path, seconds: dict[str, float]) -> tuple[dict, dict]:
+    """``recovery evaluate`` of checkpoint ``ck`` on the test set into ``ev`` and ``recovery transfer``
+    on the development set into ``tr`` (each skipped when done; its time into ``seconds``); returns
+    the metrics and the transfer report."""
+    if not (ev / "metrics.json").is_file():
+        seconds["evaluate"] = run([str(BIN / "recovery"), "evaluate", ck, TEST, "--out", str(ev)], log)
+    if not (tr / "report.json").is_file():
+        seconds["transfer"] = run([str(BIN / "recovery"), "transfer", ck, "--real", REAL, "--synthetic", TEST,
+                                   "--out", str(tr)], log)
+    return json.loads((ev / "metrics.json").read_text()), json.loads((tr / "report.json").read_text())
+
+
 def row(name: str, out: Path, log: Path) -> dict:
     lever, data, config = ROWS[name]
     result = out / "results" / f"{name}.json"
     if result.is_file():
         return json.loads(result.read_text())
-    gpu_run = out / "runs" / name / "last.pt"
-    if name in GPU_ROWS and not gpu_run.is_file():
-        raise SystemExit(f"transfer_ablation: {gpu_run}: row {name} trains on a GPU; run "
+    runs = out / "runs" / name
+    if name in GPU_ROWS and not (runs / "last.pt").is_file():
+        raise SystemExit(f"transfer_ablation: {runs / 'last.pt'}: row {name} trains on a GPU; run "
                          "benchmarks/figures/gpu_backbones.py there and put its exported file here")
     seconds: dict[str, float] = {}
     for d in () if name in GPU_ROWS else data:  # a GPU row's data were carried there as its crop cache
@@ -131,22 +143,12 @@ def row(name: str, out: Path, log: Path) -> dict:
             seconds[f"data_{d}"] = run([str(BIN / "synth"), "generate", f"configs/synth/transfer/{d}.yaml",
                                         "--out", f"out/transfer/data/{d}", "--workers", "2", "--resume"], log)
     ck = checkpoint_of(name, out)
-    if config:
-        base_weights()
-        runs = out / "runs" / name
-        if name not in GPU_ROWS and not ((runs / "last.pt").is_file() and (runs / "done").is_file()):
-            seconds["train"] = run([str(BIN / "recovery"), "train", f"configs/recovery/transfer/{config}.yaml",
-                                    "--out", str(runs), "--resume"], log)
-            (runs / "done").write_text("")
-    ev = out / "eval" / name
-    if not (ev / "metrics.json").is_file():
-        seconds["evaluate"] = run([str(BIN / "recovery"), "evaluate", ck, TEST, "--out", str(ev)], log)
-    tr = out / "check" / name
-    if not (tr / "report.json").is_file():
-        seconds["transfer"] = run([str(BIN / "recovery"), "transfer", ck, "--real", REAL, "--synthetic", TEST,
-                                   "--out", str(tr)], log)
-    metrics = json.loads((ev / "metrics.json").read_text())
-    rep = json.loads((tr / "report.json").read_text())
+    if config and name not in GPU_ROWS and not ((runs / "last.pt").is_file() and (runs / "done").is_file()):
+        base_weights()  # the run's train.init
+        seconds["train"] = run([str(BIN / "recovery"), "train", f"configs/recovery/transfer/{config}.yaml",
+                                "--out", str(runs), "--resume"], log)
+        (runs / "done").write_text("")
+    metrics, rep = score(ck, out / "eval" / name, out / "check" / name, log, seconds)
     res = {"row": name, "lever": lever, "data": list(data), "config": f"configs/recovery/transfer/{config}.yaml" if config else None,
            "checkpoint": ck, "pa_mpjpe_mm": metrics["pa_mpjpe_mm"], "mpjpe_mm": metrics["mpjpe_mm"],
            "test_people": metrics["people"], "transfer": rep, "seconds": seconds}

@@ -39,8 +39,7 @@ def adapted(pr, crops: list[torch.Tensor]):
 
 
 def pck(d) -> float:
-    c = d.counts(0.1)
-    return float(c["ours"].sum() / c["joints"].sum())
+    return T.pck_share(d.counts(0.1), "ours")
 
 
 def main() -> None:

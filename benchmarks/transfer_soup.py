@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.transfer_ablation import BASE_WEIGHTS as BASE  # noqa: E402
-from benchmarks.transfer_ablation import base_weights  # noqa: E402
+from benchmarks.transfer_ablation import base_weights, score  # noqa: E402
 from recovery.checkpoint import average_checkpoints  # noqa: E402
 
 RUNS = "out/transfer/runs"
@@ -52,14 +51,7 @@ def main() -> int:
         if args.no_score:
             print(f"[soup] {name}: {ck}", flush=True)
             continue
-        ev, tr = out / "eval" / name, out / "check" / name
-        bin_ = Path(sys.executable).parent / "recovery"
-        if not (ev / "metrics.json").is_file():
-            subprocess.run([str(bin_), "evaluate", str(ck), "out/data/test", "--out", str(ev)], cwd=ROOT, check=True)
-        if not (tr / "report.json").is_file():
-            subprocess.run([str(bin_), "transfer", str(ck), "--real", "out/transfer_dev", "--synthetic", "out/data/test",
-                            "--out", str(tr)], cwd=ROOT, check=True)
-        m, rep = json.loads((ev / "metrics.json").read_text()), json.loads((tr / "report.json").read_text())
+        m, rep = score(str(ck), out / "eval" / name, out / "check" / name, out / "soups.log", {})
         real, syn = rep["domains"]["real"]["pck@0.1"], rep["domains"]["synthetic"]["pck@0.1"]
         rows[name] = {"parts": parts, "pa_mpjpe_mm": m["pa_mpjpe_mm"], "real_pck@0.1": real["ours"],
                       "synthetic_pck@0.1": syn["ours"], "transfer_ratio@0.1": rep["transfer_ratio@0.1"],

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -192,8 +193,6 @@ def read_photos(folder: str, side: int) -> list[np.ndarray]:
     """The photographs of ``folder`` (sorted by name), each scaled so that its shorter side is
     ``side`` pixels, as (H, W, 3) uint8 arrays. A missing folder or one without photographs is a
     ValueError naming it."""
-    from pathlib import Path
-
     from PIL import Image
 
     path = Path(folder).expanduser()

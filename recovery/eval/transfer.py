@@ -334,10 +334,15 @@ class Domain:
         return float(h.sum() / max(vis.sum(), 1))
 
 
+def pck_share(c: dict[str, np.ndarray], key: str, idx: np.ndarray | None = None) -> float:
+    """PCK pooled over joints from :meth:`Domain.counts`: ``c[key]``'s hits over the visible joints
+    (of the people ``idx``, all by default)."""
+    j, h = (c[k] if idx is None else c[k][idx] for k in ("joints", key))
+    return float(h.sum() / max(int(j.sum()), 1))
+
+
 def _pck(c: dict[str, np.ndarray], idx: np.ndarray | None = None) -> tuple[float, float]:
-    j, o, f = (c[k] if idx is None else c[k][idx] for k in ("joints", "ours", "floor"))
-    n = max(int(j.sum()), 1)
-    return float(o.sum() / n), float(f.sum() / n)
+    return pck_share(c, "ours", idx), pck_share(c, "floor", idx)
 
 
 def summarise(real: Domain, synthetic: Domain, seed: int = 0) -> dict[str, Any]:
@@ -356,7 +361,7 @@ def summarise(real: Domain, synthetic: Domain, seed: int = 0) -> dict[str, Any]:
             ours, floor = _pck(c)
             entry[f"pck@{a}"] = {"ours": ours, "floor": floor, "gain": ours - floor}
             if "synthetic_floor" in c:
-                entry[f"pck@{a}"]["synthetic_floor"] = float(c["synthetic_floor"].sum() / max(int(c["joints"].sum()), 1))
+                entry[f"pck@{a}"]["synthetic_floor"] = pck_share(c, "synthetic_floor")
             truth = d.truth_pck(a)
             if truth is not None:
                 entry[f"pck@{a}"]["reference_vs_labels"] = truth
