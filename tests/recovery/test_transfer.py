@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from recovery_helpers import CONTEXT, CROP, train_config, write_config
 
 from recovery import cli
 from recovery.config import load_config
@@ -234,3 +235,52 @@ def test_ablation_rows_share_one_budget():
             assert cfg.train.init == mod.BASE_WEIGHTS and cfg.optim.lr == 1e-4 and cfg.optim.warmup_steps == 50, name
         else:
             assert name.startswith("imagenet_") and cfg.model.pretrained, name
+
+
+def test_gpu_carry_round_trip(tmp_path, model, fake_root):
+    """benchmarks/figures/gpu_carry.py: the crop caches of two configs' datasets travel, one of them
+    as the first rows of the other (the same seed, fewer samples), and unpack on another root into
+    caches that training accepts as they are (not rebuilt: only the manifests travel): parts, masks
+    and labels exact, images within WebP's loss."""
+    import shutil
+
+    from fakes import make_dataset
+
+    from recovery.datasets.cache import build_cache, cache_folder
+
+    root = Path(__file__).resolve().parents[2]
+    sys.path.insert(0, str(root))
+    from benchmarks.figures import gpu_carry
+
+    here, there = tmp_path / "here", tmp_path / "there"
+    shutil.copytree(fake_root, here / "data/big")  # 6 images
+    make_dataset(here / "data/small", num=3, model=model)  # the same seed: its first 3 images
+    names = []
+    for name, data in (("a", "data/big"), ("b", "data/small")):
+        cfg = train_config(Path(data), Path("out/gpu_cache"))
+        cfg["data"]["val"] = ""
+        for folder in (here, there):
+            (folder / "configs").mkdir(parents=True, exist_ok=True)
+            write_config(folder / f"configs/{name}.yaml", cfg)
+        names.append(f"configs/{name}.yaml")
+    gpu_carry.make_carry(tmp_path / "carry", names, "WEBP", 90, None, root=here)
+    spec = json.loads((tmp_path / "carry/carry.json").read_text())
+    by_path = {e["path"]: (name, e) for name, e in spec["datasets"].items()}
+    big, small = by_path["data/big"], by_path["data/small"]
+    assert big[1]["prefix_of"] is None and small[1]["prefix_of"] == big[0]
+    assert not (tmp_path / "carry" / small[0] / "images.npz").exists()
+    gpu_carry.unpack(tmp_path / "carry", root=there)
+
+    def refuse(*a):
+        raise AssertionError(f"the unpacked cache was rebuilt: {a}")
+
+    for p in ("data/big", "data/small"):
+        a = cache_folder(here / p, here / "out/cache", CROP, CONTEXT)
+        b = cache_folder(there / p, there / "out/gpu_cache", CROP, CONTEXT)
+        assert build_cache(there / p, b, CROP, CONTEXT, log=refuse) == b
+        for arr in ("parts", "masks"):
+            assert np.array_equal(np.load(a / f"{arr}.npy"), np.load(b / f"{arr}.npy")), (p, arr)
+        la, lb = np.load(a / "labels.npz"), np.load(b / "labels.npz")
+        assert sorted(la.files) == sorted(lb.files) and all(np.array_equal(la[k], lb[k]) for k in la.files)
+        ia, ib = np.load(a / "images.npy").astype(float), np.load(b / "images.npy").astype(float)
+        assert ia.shape == ib.shape and np.abs(ia - ib).mean() < 3.0, (p, np.abs(ia - ib).mean())

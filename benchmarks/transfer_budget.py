@@ -1,0 +1,114 @@
+"""What more budget would give to the best lever combination (docs/transfer.md, "More budget for the
+best combination").
+
+The row ``garments_effects_subjects`` (garments on 240 Anny people with the camera, sensor and
+occlusion effects) moved the transfer ratio most at the ablation's budget of 800 steps of 32 on
+1600 samples. These runs repeat its recipe with more training steps (800, 1600, 3200) and more data
+(the seed's first 1600 or 3200 samples of configs/synth/transfer/garments_subjects.yaml), on a lent
+GPU from carried crops (:mod:`benchmarks.figures.gpu_carry`), configs
+``configs/recovery/transfer/budget/d{samples}_s{steps}.yaml``:
+
+    synth generate configs/synth/transfer/garments_subjects.yaml --out out/transfer/data/garments_subjects_3200 --num 3200 --part 2/2 --workers 2 --resume
+    synth generate configs/synth/transfer/garments_subjects.yaml --out out/transfer/data/garments_subjects_3200 --num 3200 --part 1/2 --workers 2 --resume
+    synth merge out/transfer/data/garments_subjects_3200
+    python benchmarks/transfer_budget.py carry            # here: out/gpucarry_budget
+    # there (device run, carry out/gpucarry_budget):
+    python3 benchmarks/transfer_budget.py run --limit 420 --out $OUT
+    # back here: the exported RUN.pt files into out/transfer/budget/runs/, then
+    python benchmarks/transfer_budget.py score            # docs/figures/transfer_budget.json
+
+``score`` scores each exported network as an ablation row is scored
+(:func:`benchmarks.transfer_ablation.score`: PA-MPJPE on the held-out test set, the transfer check on
+the development set) and, with ``--wise``, its half-and-half weight average with the 9000-step
+network (as the packaged checkpoint was made).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.figures.gpu_carry import make_carry, train  # noqa: E402
+
+CARRY = ROOT / "out" / "gpucarry_budget"
+RUNS = {"d1600_s800": (1600, 800), "d1600_s3200": (1600, 3200), "d3200_s800": (3200, 800),
+        "d3200_s1600": (3200, 1600), "d3200_s3200": (3200, 3200)}
+OUT = ROOT / "out" / "transfer" / "budget"
+FIGURE = ROOT / "docs" / "figures" / "transfer_budget.json"
+
+
+def configs(names: list[str]) -> dict[str, str]:
+    return {n: f"configs/recovery/transfer/budget/{n}.yaml" for n in names}
+
+
+def steps_reached(name: str) -> int | None:
+    """The last step a run logged (``OUT/logs/NAME.log.jsonl``), None without a log."""
+    log = OUT / "logs" / f"{name}.log.jsonl"
+    if not log.is_file():
+        return None
+    steps = [json.loads(line).get("step") for line in log.read_text().splitlines() if line.strip()]
+    return max((s for s in steps if isinstance(s, int)), default=None)
+
+
+def score_runs(names: list[str], wise: bool) -> dict:
+    from benchmarks.transfer_ablation import BASE_WEIGHTS, base_weights, score
+    from recovery.checkpoint import average_checkpoints
+
+    base_weights()
+    rows = json.loads(FIGURE.read_text()) if FIGURE.is_file() else {}
+    log = OUT / "budget.log"
+    for name in names:
+        samples, steps = RUNS[name]
+        ck = OUT / "runs" / f"{name}.pt"
+        if not ck.is_file():
+            raise SystemExit(f"transfer_budget: {ck}: missing (train it on a GPU: module docstring)")
+        todo = [(name, ck)]
+        if wise:
+            avg = OUT / "runs" / f"wise_{name}.pt"
+            average_checkpoints([(BASE_WEIGHTS, 0.5), (str(ck), 0.5)], avg)
+            todo.append((f"wise_{name}", avg))
+        for key, path in todo:
+            m, rep = score(str(path), OUT / "eval" / key, OUT / "check" / key, log, {})
+            real, syn = rep["domains"]["real"]["pck@0.1"], rep["domains"]["synthetic"]["pck@0.1"]
+            rows[key] = {"samples": samples, "steps": steps, "steps_reached": steps_reached(name),
+                         "crops": steps * 32, "wise": key != name, "pa_mpjpe_mm": m["pa_mpjpe_mm"],
+                         "mpjpe_mm": m["mpjpe_mm"], "real_pck@0.1": real["ours"], "synthetic_pck@0.1": syn["ours"],
+                         "transfer_ratio@0.1": rep["transfer_ratio@0.1"], "transfer_ratio_90": rep.get("transfer_ratio_90")}
+            print(f"[budget] {key}: PA-MPJPE {m['pa_mpjpe_mm']:.1f} mm, PCK@0.1 real {100 * real['ours']:.1f} %, "
+                  f"synthetic {100 * syn['ours']:.1f} %, transfer ratio {rep['transfer_ratio@0.1']:.2f}", flush=True)
+            FIGURE.write_text(json.dumps(rows, indent=1))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    c = sub.add_parser("carry")
+    c.add_argument("--wheels", default="/tmp/whl", help="folder holding kornia-0.9.0-py3-none-any.whl")
+    r = sub.add_parser("run")
+    r.add_argument("--limit", type=float, default=420.0, help="each run's wall-clock limit (s)")
+    r.add_argument("--out", default=os.environ.get("OUT", "out/gpu_out"))
+    s = sub.add_parser("score")
+    s.add_argument("--wise", action="store_true", help="also score each network averaged with the 9000-step one")
+    for p in (c, r, s):
+        p.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS))
+    args = ap.parse_args(argv)
+    if args.cmd == "carry":
+        make_carry(CARRY, list(configs(args.runs).values()), "WEBP", 90, Path(args.wheels))
+    elif args.cmd == "run":
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        return train(CARRY, configs(args.runs), args.limit, out)
+    else:
+        score_runs(args.runs, args.wise)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
