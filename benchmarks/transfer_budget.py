@@ -13,7 +13,7 @@ GPU from carried crops (:mod:`benchmarks.figures.gpu_carry`), configs
     synth merge out/transfer/data/garments_subjects_3200
     python benchmarks/transfer_budget.py carry            # here: out/gpucarry_budget
     # there (device run, carry out/gpucarry_budget):
-    python3 benchmarks/transfer_budget.py run --limit 420 --out $OUT
+    python3 benchmarks/transfer_budget.py run --limit 500 --out $OUT   (483 s on an H200)
     # back here: the exported RUN.pt files into out/transfer/budget/runs/, then
     python benchmarks/transfer_budget.py score            # docs/figures/transfer_budget.json
 
@@ -30,6 +30,8 @@ import json
 import os
 import sys
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -86,16 +88,53 @@ def score_runs(names: list[str], wise: bool) -> dict:
     return rows
 
 
+def plot(rows: dict, out: Path) -> Path:
+    """The curves: transfer ratio (90 % interval) and test PA-MPJPE against the fine-tuning crops,
+    per amount of data, for the fine-tunes and their weight averages."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for samples, colour in ((1600, "tab:blue"), (3200, "tab:orange")):
+        for wise, style in ((False, "o-"), (True, "s--")):
+            pts = sorted((r["crops"], r) for r in rows.values() if r["samples"] == samples and r["wise"] == wise)
+            if not pts:
+                continue
+            x = np.array([c for c, _ in pts]) / 1000
+            label = f"{samples} samples" + (", averaged with the 9000-step network" if wise else "")
+            ratio = np.array([r["transfer_ratio@0.1"] for _, r in pts])
+            lo, hi = (np.array([r["transfer_ratio_90"][i] for _, r in pts]) for i in (0, 1))
+            axes[0].errorbar(x * (1.02 if wise else 1.0), ratio, yerr=[ratio - lo, hi - ratio], fmt=style, color=colour,
+                             capsize=3, label=label)
+            axes[1].plot(x, [r["pa_mpjpe_mm"] for _, r in pts], style, color=colour, label=label)
+    axes[0].axhline(0.5, color="k", lw=0.8, ls=":", label="target 0.5")
+    axes[0].axhline(0.0, color="grey", lw=0.8, label="mean-pose floor")
+    axes[0].set(xscale="log", xlabel="fine-tuning crops (thousands)", ylabel="transfer ratio @0.1 (90 % interval)")
+    axes[1].set(xscale="log", xlabel="fine-tuning crops (thousands)", ylabel="PA-MPJPE, held-out test set (mm)")
+    for ax in axes:
+        ax.set_xticks([25.6, 51.2, 102.4], ["25.6", "51.2", "102.4"])
+        ax.minorticks_off()
+    axes[0].legend(fontsize=7)
+    fig.suptitle("garments_effects_subjects: more steps and more data (GPU runs)")
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     c = sub.add_parser("carry")
     c.add_argument("--wheels", default="/tmp/whl", help="folder holding kornia-0.9.0-py3-none-any.whl")
     r = sub.add_parser("run")
-    r.add_argument("--limit", type=float, default=420.0, help="each run's wall-clock limit (s)")
+    r.add_argument("--limit", type=float, default=500.0, help="each run's wall-clock limit (s)")
     r.add_argument("--out", default=os.environ.get("OUT", "out/gpu_out"))
     s = sub.add_parser("score")
     s.add_argument("--wise", action="store_true", help="also score each network averaged with the 9000-step one")
+    sub.add_parser("plot", help="docs/figures/transfer_budget.png from docs/figures/transfer_budget.json")
     for p in (c, r, s):
         p.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS))
     args = ap.parse_args(argv)
@@ -105,8 +144,10 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         return train(CARRY, configs(args.runs), args.limit, out)
+    elif args.cmd == "score":
+        plot(score_runs(args.runs, args.wise), FIGURE.with_suffix(".png"))
     else:
-        score_runs(args.runs, args.wise)
+        plot(json.loads(FIGURE.read_text()), FIGURE.with_suffix(".png"))
     return 0
 
 

@@ -8,7 +8,7 @@ person by person.
         [--json docs/figures/transfer_paired.json]
 
 Reads the checkpoints of out/transfer/runs/ROW/last.pt (``packaged``: the 9000-step network; ``default``: the
-packaged one) and the
+packaged one; a run of benchmarks/transfer_budget.py: out/transfer/budget/runs/ROW.pt) and the
 reference answers cached by ``recovery transfer`` in out/transfer/check/base/reference.json.
 """
 
@@ -30,11 +30,22 @@ from recovery.eval import transfer as T  # noqa: E402
 from recovery.predictor import load_predictor  # noqa: E402
 
 
+def locate(row: str) -> tuple[str, Path]:
+    """A row's checkpoint and its ``recovery evaluate`` folder: an ablation row, or a run (or its
+    weight average) of benchmarks/transfer_budget.py."""
+    if row in ROWS:
+        return checkpoint_of(row, ROOT / "out/transfer"), ROOT / "out/transfer/eval" / row
+    ck = ROOT / "out/transfer/budget/runs" / f"{row}.pt"
+    if not ck.is_file():
+        raise SystemExit(f"transfer_paired: {row}: not an ablation row, and {ck} is missing")
+    return str(ck), ROOT / "out/transfer/budget/eval" / row
+
+
 def paired_pa_mpjpe(row: str, reference: str, boot: int, rng: np.random.Generator) -> dict | None:
     """The row's PA-MPJPE on the held-out test set minus the reference row's, person by person, with
     a 90 % bootstrap interval over people; None unless both rows' ``recovery evaluate`` kept
     ``people.npz`` (made since 2026-11-27)."""
-    files = [ROOT / "out/transfer/eval" / r / "people.npz" for r in (row, reference)]
+    files = [locate(r)[1] / "people.npz" for r in (row, reference)]
     if not all(f.is_file() for f in files):
         return None
     (ia, a), (ib, b) = ((z["index"], z["pa_mpjpe_mm"]) for z in (np.load(f) for f in files))
@@ -49,7 +60,8 @@ def paired_pa_mpjpe(row: str, reference: str, boot: int, rng: np.random.Generato
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reference", default="base")
-    ap.add_argument("--rows", nargs="+", help="rows of benchmarks/transfer_ablation.py (default: all but --reference)")
+    ap.add_argument("--rows", nargs="+", help="rows of benchmarks/transfer_ablation.py or runs of benchmarks/transfer_budget.py "
+                    "(default: every ablation row but --reference)")
     ap.add_argument("--json", default=str(ROOT / "docs/figures/transfer_paired.json"))
     ap.add_argument("--boot", type=int, default=2000)
     args = ap.parse_args()
@@ -69,7 +81,7 @@ def main() -> int:
         setup[name] = (people, ref, vis, centre, side, ok)
         hits[name] = {"joints": vis[ok].sum(1), "floor": T.hits(floor[ok], ref[ok], vis[ok], side[ok], 0.1)}
     for row in [args.reference, *args.rows]:
-        pr = load_predictor(checkpoint_of(row, ROOT / "out/transfer"))
+        pr = load_predictor(locate(row)[0])
         for name, (people, ref, vis, centre, side, ok) in setup.items():
             ours, _ = T.predict_joints(pr, people, centre, side, ok)
             hits[name][row] = T.hits(ours[ok], ref[ok], vis[ok], side[ok], 0.1)
