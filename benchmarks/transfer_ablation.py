@@ -59,6 +59,10 @@ ROWS = {  # name: (lever, data configs, recovery config)
                                   ("garments_postures",), "garments_effects_postures"),
     "garments_effects_subjects": ("garments_effects on data with 240 Anny subjects instead of 24 (the subjects lever)",
                                   ("garments_subjects",), "garments_effects_subjects"),
+    "garments_effects_subjects_seed1": ("garments_effects_subjects again with train.seed 1 (data order, augmentation, dropout): "
+                                        "the spread between runs of one recipe", ("garments_subjects",), "garments_effects_subjects_seed1"),
+    "garments_effects_subjects_seed2": ("garments_effects_subjects again with train.seed 2", ("garments_subjects",),
+                                        "garments_effects_subjects_seed2"),
     "gpu_imagenet_lite0": ("backbone pair at the packaged crop budget: EfficientNet-Lite0 from ImageNet, 288k crops of the subjects data (GPU)",
                            ("subjects",), "gpu_imagenet_lite0"),
     "gpu_imagenet_lite2": ("backbone pair at the packaged crop budget: EfficientNet-Lite2 from ImageNet, 288k crops of the subjects data (GPU)",
