@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -36,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.figures.gpu_carry import make_carry, train  # noqa: E402
+from benchmarks.figures.gpu_carry import add_commands, command  # noqa: E402
 
 CARRY = ROOT / "out" / "gpucarry_budget"
 RUNS = {"d1600_s800": (1600, 800), "d1600_s3200": (1600, 3200), "d3200_s800": (3200, 800),
@@ -127,24 +126,16 @@ def plot(rows: dict, out: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
-    c = sub.add_parser("carry")
-    c.add_argument("--wheels", default="/tmp/whl", help="folder holding kornia-0.9.0-py3-none-any.whl")
-    r = sub.add_parser("run")
-    r.add_argument("--limit", type=float, default=500.0, help="each run's wall-clock limit (s)")
-    r.add_argument("--out", default=os.environ.get("OUT", "out/gpu_out"))
+    c, r = add_commands(sub, limit=500.0)
     s = sub.add_parser("score")
     s.add_argument("--wise", action="store_true", help="also score each network averaged with the 9000-step one")
     sub.add_parser("plot", help="docs/figures/transfer_budget.png from docs/figures/transfer_budget.json")
     for p in (c, r, s):
         p.add_argument("--runs", nargs="+", default=list(RUNS), choices=list(RUNS))
     args = ap.parse_args(argv)
-    if args.cmd == "carry":
-        make_carry(CARRY, list(configs(args.runs).values()), "WEBP", 90, Path(args.wheels))
-    elif args.cmd == "run":
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-        return train(CARRY, configs(args.runs), args.limit, out)
-    elif args.cmd == "score":
+    if args.cmd in ("carry", "run"):
+        return command(args, CARRY, configs(args.runs), "WEBP", 90)
+    if args.cmd == "score":
         plot(score_runs(args.runs, args.wise), FIGURE.with_suffix(".png"))
     else:
         plot(json.loads(FIGURE.read_text()), FIGURE.with_suffix(".png"))

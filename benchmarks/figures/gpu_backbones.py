@@ -16,14 +16,13 @@ and trained by :mod:`benchmarks.figures.gpu_carry` (the crops as JPEG quality 90
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.figures.gpu_carry import make_carry, train  # noqa: E402
+from benchmarks.figures.gpu_carry import add_commands, command  # noqa: E402
 
 CARRY = ROOT / "out" / "gpucarry"
 ROWS = ("gpu_imagenet_lite0", "gpu_imagenet_lite2")
@@ -31,20 +30,9 @@ ROWS = ("gpu_imagenet_lite0", "gpu_imagenet_lite2")
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    c = sub.add_parser("carry")
-    c.add_argument("--wheels", default="/tmp/whl", help="folder holding kornia-0.9.0-py3-none-any.whl")
-    r = sub.add_parser("run")
-    r.add_argument("--limit", type=float, default=420.0, help="each training's wall-clock limit (s)")
-    r.add_argument("--out", default=os.environ.get("OUT", "out/gpu_out"))
+    add_commands(ap.add_subparsers(dest="cmd", required=True), limit=420.0)
     args = ap.parse_args(argv)
-    configs = {row: f"configs/recovery/transfer/{row}.yaml" for row in ROWS}
-    if args.cmd == "carry":
-        make_carry(CARRY, list(configs.values()), "JPEG", 90, Path(args.wheels))
-        return 0
-    outdir = Path(args.out)
-    outdir.mkdir(parents=True, exist_ok=True)
-    return train(CARRY, configs, args.limit, outdir)
+    return command(args, CARRY, {row: f"configs/recovery/transfer/{row}.yaml" for row in ROWS}, "JPEG", 90)
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ import time
 import zipfile
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -71,13 +72,15 @@ def _encode(images: np.ndarray, codec: str, quality: int) -> tuple[np.ndarray, n
 
 def _prefix_of(src: Path, carried: dict[str, Path]) -> str | None:
     """The carried cache whose first rows are ``src``'s arrays and labels, if one is."""
-    labels = np.load(src / "labels.npz")
+    n = len(np.load(src / "images.npy", mmap_mode="r"))
+    with np.load(src / "labels.npz") as z:
+        labels = {k: z[k] for k in z.files}
     for name, other in carried.items():
-        n = len(np.load(src / "images.npy", mmap_mode="r"))
         if len(np.load(other / "images.npy", mmap_mode="r")) < n:
             continue
-        theirs = np.load(other / "labels.npz")
-        if set(theirs.files) != set(labels.files) or not all(np.array_equal(labels[k], theirs[k][:n]) for k in labels.files):
+        with np.load(other / "labels.npz") as z:
+            same = set(z.files) == set(labels) and all(np.array_equal(v, z[k][:n]) for k, v in labels.items())
+        if not same:
             continue
         if all(np.array_equal(np.load(src / f"{a}.npy", mmap_mode="r"), np.load(other / f"{a}.npy", mmap_mode="r")[:n])
                for a in ARRAYS):
@@ -242,3 +245,23 @@ def train(carry: Path, names: dict[str, str], limit: float, outdir: Path) -> int
         tar.add(logs, arcname="logs")
     print(f"[gpu_carry] wall {time.perf_counter() - t0:.0f} s")
     return 0
+
+
+def add_commands(sub: Any, limit: float) -> tuple[Any, Any]:
+    """The ``carry`` (here) and ``run`` (there) subcommands of a GPU script; returns their parsers."""
+    c = sub.add_parser("carry", help="here: write the carry")
+    c.add_argument("--wheels", default="/tmp/whl", help="folder holding kornia-0.9.0-py3-none-any.whl")
+    r = sub.add_parser("run", help="there: unpack the carry, train, export into --out")
+    r.add_argument("--limit", type=float, default=limit, help="each run's wall-clock limit (s)")
+    r.add_argument("--out", default=os.environ.get("OUT", "out/gpu_out"))
+    return c, r
+
+
+def command(args: Any, carry: Path, configs: dict[str, str], codec: str, quality: int) -> int:
+    """Do ``carry`` or ``run`` (:func:`add_commands`) for the runs ``configs`` (name: config path)."""
+    if args.cmd == "carry":
+        make_carry(carry, list(configs.values()), codec, quality, Path(args.wheels))
+        return 0
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    return train(carry, configs, args.limit, out)
