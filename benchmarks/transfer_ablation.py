@@ -59,6 +59,8 @@ ROWS = {  # name: (lever, data configs, recovery config)
                                   ("garments_postures",), "garments_effects_postures"),
     "garments_effects_subjects": ("garments_effects on data with 240 Anny subjects instead of 24 (the subjects lever)",
                                   ("garments_subjects",), "garments_effects_subjects"),
+    "plates_crowd": ("backgrounds with crowds: backplates, 3 to 5 people an image instead of 1 to 2", ("plates_crowd",),
+                     "plates_crowd"),
     "garments_effects_subjects_seed1": ("garments_effects_subjects again with train.seed 1 (data order, augmentation, dropout): "
                                         "the spread between runs of one recipe", ("garments_subjects",), "garments_effects_subjects_seed1"),
     "garments_effects_subjects_seed2": ("garments_effects_subjects again with train.seed 2", ("garments_subjects",),
