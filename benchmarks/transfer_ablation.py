@@ -134,6 +134,20 @@ def score(ck: str, ev: Path, tr: Path, log: Path, seconds: dict[str, float]) -> 
     return json.loads((ev / "metrics.json").read_text()), json.loads((tr / "report.json").read_text())
 
 
+def summary(metrics: dict, rep: dict) -> dict:
+    """A scored network's headline numbers (:func:`score`'s results), as the weight averages and the
+    budget runs record them."""
+    real, syn = rep["domains"]["real"]["pck@0.1"], rep["domains"]["synthetic"]["pck@0.1"]
+    return {"pa_mpjpe_mm": metrics["pa_mpjpe_mm"], "real_pck@0.1": real["ours"], "synthetic_pck@0.1": syn["ours"],
+            "transfer_ratio@0.1": rep["transfer_ratio@0.1"], "transfer_ratio_90": rep.get("transfer_ratio_90")}
+
+
+def headline(s: dict) -> str:
+    """:func:`summary` in one line."""
+    return (f"PA-MPJPE {s['pa_mpjpe_mm']:.1f} mm, PCK@0.1 real {100 * s['real_pck@0.1']:.1f} %, "
+            f"synthetic {100 * s['synthetic_pck@0.1']:.1f} %, transfer ratio {s['transfer_ratio@0.1']:.2f}")
+
+
 def row(name: str, out: Path, log: Path) -> dict:
     lever, data, config = ROWS[name]
     result = out / "results" / f"{name}.json"

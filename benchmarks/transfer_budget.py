@@ -58,7 +58,7 @@ def steps_reached(name: str) -> int | None:
 
 
 def score_runs(names: list[str], wise: bool) -> dict:
-    from benchmarks.transfer_ablation import BASE_WEIGHTS, base_weights, score
+    from benchmarks.transfer_ablation import BASE_WEIGHTS, base_weights, headline, score, summary
     from recovery.checkpoint import average_checkpoints
 
     base_weights()
@@ -69,20 +69,16 @@ def score_runs(names: list[str], wise: bool) -> dict:
         ck = OUT / "runs" / f"{name}.pt"
         if not ck.is_file():
             raise SystemExit(f"transfer_budget: {ck}: missing (train it on a GPU: module docstring)")
-        todo = [(name, ck)]
+        todo, reached = [(name, ck)], steps_reached(name)
         if wise:
             avg = OUT / "runs" / f"wise_{name}.pt"
             average_checkpoints([(BASE_WEIGHTS, 0.5), (str(ck), 0.5)], avg)
             todo.append((f"wise_{name}", avg))
         for key, path in todo:
             m, rep = score(str(path), OUT / "eval" / key, OUT / "check" / key, log, {})
-            real, syn = rep["domains"]["real"]["pck@0.1"], rep["domains"]["synthetic"]["pck@0.1"]
-            rows[key] = {"samples": samples, "steps": steps, "steps_reached": steps_reached(name),
-                         "crops": steps * 32, "wise": key != name, "pa_mpjpe_mm": m["pa_mpjpe_mm"],
-                         "mpjpe_mm": m["mpjpe_mm"], "real_pck@0.1": real["ours"], "synthetic_pck@0.1": syn["ours"],
-                         "transfer_ratio@0.1": rep["transfer_ratio@0.1"], "transfer_ratio_90": rep.get("transfer_ratio_90")}
-            print(f"[budget] {key}: PA-MPJPE {m['pa_mpjpe_mm']:.1f} mm, PCK@0.1 real {100 * real['ours']:.1f} %, "
-                  f"synthetic {100 * syn['ours']:.1f} %, transfer ratio {rep['transfer_ratio@0.1']:.2f}", flush=True)
+            rows[key] = {"samples": samples, "steps": steps, "steps_reached": reached, "crops": steps * 32,
+                         "wise": key != name, "mpjpe_mm": m["mpjpe_mm"], **summary(m, rep)}
+            print(f"[budget] {key}: {headline(rows[key])}", flush=True)
             FIGURE.write_text(json.dumps(rows, indent=1))
     return rows
 

@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.transfer_ablation import BASE_WEIGHTS as BASE  # noqa: E402
-from benchmarks.transfer_ablation import base_weights, score  # noqa: E402
+from benchmarks.transfer_ablation import base_weights, headline, score, summary  # noqa: E402
 from recovery.checkpoint import average_checkpoints  # noqa: E402
 
 RUNS = "out/transfer/runs"
@@ -51,13 +51,9 @@ def main() -> int:
         if args.no_score:
             print(f"[soup] {name}: {ck}", flush=True)
             continue
-        m, rep = score(str(ck), out / "eval" / name, out / "check" / name, out / "soups.log", {})
-        real, syn = rep["domains"]["real"]["pck@0.1"], rep["domains"]["synthetic"]["pck@0.1"]
-        rows[name] = {"parts": parts, "pa_mpjpe_mm": m["pa_mpjpe_mm"], "real_pck@0.1": real["ours"],
-                      "synthetic_pck@0.1": syn["ours"], "transfer_ratio@0.1": rep["transfer_ratio@0.1"],
-                      "transfer_ratio_90": rep.get("transfer_ratio_90")}
-        print(f"[soup] {name}: PA-MPJPE {m['pa_mpjpe_mm']:.1f} mm, PCK@0.1 real {100 * real['ours']:.1f} %, "
-              f"synthetic {100 * syn['ours']:.1f} %, transfer ratio {rep['transfer_ratio@0.1']:.2f}", flush=True)
+        rows[name] = {"parts": parts, **summary(*score(str(ck), out / "eval" / name, out / "check" / name,
+                                                         out / "soups.log", {}))}
+        print(f"[soup] {name}: {headline(rows[name])}", flush=True)
     figure.write_text(json.dumps(rows, indent=1))
     return 0
 
