@@ -48,6 +48,60 @@ def _docs(dataset: Path) -> list[dict]:
         index.close()
 
 
+FIELD_RULES = {
+    # name: (heel point, toe point, difference, threshold m/s): the contact rules of the methods users
+    # train, on the joints they use (SMPL's ankle and foot joints; here BLSM's ankle joint and the toe
+    # base, synth.sequence.toe_base), beside the labels' own.
+    "the labels' rule (heel, toe base; central; 0.3 m/s)": ("heel", "toe_base", "central", 0.3),
+    "the labels' rule until 2026-11-28 (heel, toe tip; central; 0.3 m/s)": ("heel", "toe_tip", "central", 0.3),
+    "WHAM (ankle, toe base; central; 1 cm/frame)": ("ankle", "toe_base", "central", 0.3),
+    "GVHMR (ankle, toe base; forward; 0.25 m/s)": ("ankle", "toe_base", "forward", 0.25),
+    "HuMoR threshold (ankle, toe base; forward; 0.15 m/s)": ("ankle", "toe_base", "forward", 0.15),
+}
+
+
+def field_rules(dataset: Path, docs: list[dict]) -> dict:
+    """The exact contact of the heels and toes against each rule of :data:`FIELD_RULES`, on the
+    frames with both neighbours (the labels hold no frame outside a sequence): agreement per region
+    and frame. The toe base comes from the rebuilt bodies (:class:`synth.validate.MeshRebuilder`)."""
+    from synth.sequence import toe_base
+    from synth.validate import MeshRebuilder
+
+    cfg = json.loads((dataset / "manifest.json").read_text()).get("config", {})
+    rebuild = MeshRebuilder(dataset, cfg)
+    names = docs[0]["keypoint_names"]
+    T, fps = docs[0]["frames"], docs[0]["fps"]
+    pts: dict[str, list] = {k: [] for k in ("heel", "toe_tip", "ankle", "toe_base")}
+    for i, d in enumerate(docs):
+        v, _, kp = rebuild.mesh(d["people"][0])
+        if i % T == 0:  # the toe base's vertices, fixed at the sequence's first frame (as the generator)
+            base = toe_base(rebuild.model, rebuild.bones, v, kp)
+        for k in ("heel", "toe_tip", "ankle"):
+            pts[k].append([kp[names.index(f"{k}_{s}")] for s in ("l", "r")])
+        pts["toe_base"].append([v[base[f"toe_{s}"]].mean(0) for s in ("l", "r")])
+    arr = {k: np.asarray(x).reshape(-1, T, 2, 3) for k, x in pts.items()}  # (sequences, T, side, 3)
+    feet = ("heel_l", "heel_r", "toe_l", "toe_r")
+    exact = np.array([[d["people"][0]["contact"][r] for r in feet] for d in docs]).reshape(-1, T, 4)[:, 1:-1]
+    out = {}
+    for name, (heel, toe, diff, thr) in FIELD_RULES.items():
+        x = np.concatenate([arr[heel], arr[toe]], axis=2)  # (S, T, 4, 3): heel_l, heel_r, toe_l, toe_r
+        if diff == "central":
+            speed = np.linalg.norm(x[:, 2:] - x[:, :-2], axis=-1) * fps / 2
+        else:  # frame t's speed from t to t + 1, as GVHMR's mask
+            speed = np.linalg.norm(x[:, 2:] - x[:, 1:-1], axis=-1) * fps
+        rule = speed < thr
+        agree = rule == exact
+        out[name] = {
+            "agreement_region_frames": round(float(agree.mean()), 4),
+            "per_region": {r: round(float(agree[..., i].mean()), 4) for i, r in enumerate(feet)},
+            "exact_only": int((exact & ~rule).sum()), "rule_only": int((~exact & rule).sum()),
+            "contact_rate_rule": round(float(rule.mean()), 3),
+        }
+        print(f"[video_check] {name}: agreement {out[name]['agreement_region_frames']:.4f} "
+              f"(exact only {out[name]['exact_only']}, rule only {out[name]['rule_only']})", flush=True)
+    return {"frames_scored": int(exact.shape[0] * exact.shape[1]), "rules": out}
+
+
 def paths(args: argparse.Namespace) -> dict:
     from synth.camera_paths import PATHS
 
@@ -120,6 +174,7 @@ def walks(args: argparse.Namespace) -> dict:
         "agreement_away_from_changes": round(float(agree[~near].mean()), 4),
     }
     print(f"[video_check] walks: {json.dumps(res)}", flush=True)
+    res["field_rules"] = field_rules(out, docs)
     return res
 
 

@@ -469,8 +469,8 @@ class MotionBlur:
 class ContactConfig:
     """Ground contact (:func:`synth.sequence.contact`): a body region touches the ground ``y = 0``
     when one of its vertices is within ``distance`` metres of it and slower than ``speed`` m/s. The
-    field's velocity rule, reported beside it: the region's keypoint slower than ``velocity_rule``
-    m/s."""
+    field's velocity rule, reported beside it: the region's point (the keypoint; the toe base for the
+    toes, :data:`synth.sequence.RULE_POINT`) slower than ``velocity_rule`` m/s."""
 
     distance: float = 0.015
     speed: float = 0.3

@@ -35,8 +35,10 @@ from its own random generator (:func:`sequence_rng`), in this order:
 Contact (:func:`contact`): a region (:data:`CONTACT_REGIONS`) touches the ground when one of its
 vertices is within ``sequence.contact.distance`` of ``y = 0`` and slower than ``contact.speed``.
 Exact, because the ground is ours. Beside it, ``contact_velocity`` is the rule the field derives
-contact with from motion capture: the region's keypoint (:data:`REGION_KEYPOINT`) slower than
-``contact.velocity_rule``.
+contact with from motion capture: the region's point slower than ``contact.velocity_rule``. The
+point is the region's keypoint (:data:`REGION_KEYPOINT`), but for the toes the toe base
+(:func:`toe_base`): the point WHAM, GVHMR and HuMoR take (SMPL's foot joint) and the gait lab's toe
+marker (on the second metatarsal head), where the toe tip is a point nobody measures.
 """
 
 from __future__ import annotations
@@ -56,7 +58,13 @@ CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "kn
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
                    "hand_l": "wrist_l", "hand_r": "wrist_r", "knee_l": "knee_l", "knee_r": "knee_r",
                    "pelvis": "pelvis"}  # fmt: skip
+RULE_POINT = {**REGION_KEYPOINT, "toe_l": "toe_base_l", "toe_r": "toe_base_r"}
+"""The point ``contact_velocity`` follows per region (the label ``contact_rule.velocity_points``):
+the region's keypoint, the toe base (:func:`toe_base`) for the toes."""
 FEET = ("heel_l", "heel_r", "toe_l", "toe_r")
+TOE_BASE = (0.63, 0.72)
+"""The toe base (:func:`toe_base`) spans these fractions of the heel-to-toe-tip axis: the positions
+of the landmarks mtp5 and mtp1 (``blsm/data/landmarks.yaml``), the metatarsal heads."""
 MAX_ROOT_SPEED = 8.0
 """m/s: a clip whose root moves faster between two frames has a cut there (CMU files often start
 with a calibration frame at the origin); windows never cross one."""
@@ -202,6 +210,20 @@ def contact_regions(
     return {k: out[k] for k in CONTACT_REGIONS}
 
 
+def toe_base(model: Any, vertex_bones: np.ndarray, vertices: np.ndarray, keypoints: np.ndarray) -> dict[str, np.ndarray]:
+    """Vertex indices whose centroid is the toe base of each foot (``toe_l``, ``toe_r``) of a posed
+    person: the foot bone's vertices between the fractions :data:`TOE_BASE` of the heel-to-toe-tip
+    axis. Their centroid lies inside the foot at the metatarsal heads, where SMPL's foot joint is."""
+    bones, kp = list(model.bone_names), list(model.keypoint_names)
+    out = {}
+    for s in ("l", "r"):
+        foot = np.nonzero(vertex_bones == bones.index(f"ankle_{s}"))[0]
+        heel, toe = keypoints[kp.index(f"heel_{s}")], keypoints[kp.index(f"toe_tip_{s}")]
+        u = (vertices[foot] - heel) @ (toe - heel) / max(float((toe - heel) @ (toe - heel)), 1e-12)
+        out[f"toe_{s}"] = foot[(u >= TOE_BASE[0]) & (u <= TOE_BASE[1])]
+    return out
+
+
 def contact(heights: np.ndarray, speeds: np.ndarray, distance: float, speed: float) -> bool:
     """A region touches the ground: one of its vertices (``heights`` above ``y = 0`` and ``speeds``,
     m/s) is within ``distance`` of it and slower than ``speed``."""
@@ -244,6 +266,8 @@ class Actor:
         frames: the ``T`` frames' posed people, placed by :meth:`SequenceMaker.make`.
         keypoints: (T + 2, K, 3) on the frame grid (one row before the first frame and one after
             the last); ``region_vertices`` region -> (T + 2, n, 3) its vertices there.
+        rule_points: (T + 2, R, 3) the point of each region of :data:`CONTACT_REGIONS` that
+            ``contact_velocity`` follows (module docstring), on the grid.
         lift: (T + 2,) metres each grid row is lifted by (grounding).
         window: the clip window (the label's ``clip_window``).
         offset: (3,) the placement's horizontal offset, metres (None before placement).
@@ -253,6 +277,7 @@ class Actor:
     frames: list[Person]
     keypoints: np.ndarray
     region_vertices: dict[str, np.ndarray]
+    rule_points: np.ndarray
     lift: np.ndarray
     window: dict[str, Any]
     offset: np.ndarray | None = None
@@ -321,11 +346,14 @@ class SequenceMaker:
         first = grid[1]
         regions = contact_regions(m.model, first.vertex_bones, first.vertices, first.keypoints)
         region_vertices = {r: np.stack([g.vertices[idx] for g in grid]).astype(np.float64) for r, idx in regions.items()}
+        keypoints = np.stack([g.keypoints for g in grid]).astype(np.float64)
+        rule_points = keypoints[:, self.region_kp].copy()
+        for r, idx in toe_base(m.model, first.vertex_bones, first.vertices, first.keypoints).items():
+            rule_points[:, CONTACT_REGIONS.index(r)] = np.stack([g.vertices[idx].mean(0) for g in grid])
         frames = grid[1:-1]
         return Actor(
-            posed=posed, frames=frames,
-            keypoints=np.stack([g.keypoints for g in grid]).astype(np.float64),
-            region_vertices=region_vertices,
+            posed=posed, frames=frames, keypoints=keypoints,
+            region_vertices=region_vertices, rule_points=rule_points,
             lift=self._lift(grid, region_vertices),
             window={"clip": win.clip.name, "start_s": round(win.start + self.margin, 6), "yaw_deg": round(math.degrees(yaw), 4),
                     "leg_scale": round(float(scale), 6)},
@@ -380,6 +408,7 @@ class SequenceMaker:
             for f, fr in enumerate(p.frames):
                 fr.move(rows[f + 1])
             p.keypoints += rows[:, None]
+            p.rule_points += rows[:, None]
             for r in p.region_vertices:
                 p.region_vertices[r] += rows[:, None]
         step = max(1, T // 24)
@@ -421,11 +450,12 @@ class SequenceMaker:
         vel = (kp[k + 1] - kp[k - 1]) / (2 * self.h)
         c = self.cfg.contact
         touch, rule = {}, {}
-        for r, kpi in zip(CONTACT_REGIONS, self.region_kp, strict=False):
+        rule_speed = np.linalg.norm(p.rule_points[k + 1] - p.rule_points[k - 1], axis=1) / (2 * self.h)
+        for i, r in enumerate(CONTACT_REGIONS):
             rv = p.region_vertices[r]
             speeds = np.linalg.norm(rv[k + 1] - rv[k - 1], axis=1) / (2 * self.h)
             touch[r] = contact(rv[k][:, 1], speeds, c.distance, c.speed) if len(rv[k]) else False
-            rule[r] = bool(np.linalg.norm(vel[kpi]) <= c.velocity_rule)
+            rule[r] = bool(rule_speed[i] <= c.velocity_rule)
         return {"velocity_3d": vel, "contact": touch, "contact_velocity": rule}
 
     def _frame(
@@ -458,7 +488,8 @@ class SequenceMaker:
         to_world[:3, :3], to_world[:3, 3] = camera.R.T, -camera.R.T @ camera.t
         extra = {"sequence": seq, "frame": f, "frames": T, "fps": F, "time": round(t, 9),
                  "camera": {"to_world": _l(to_world), "path": _json(path.info)},
-                 "contact_rule": {"distance": c.distance, "speed": c.speed, "velocity_rule": c.velocity_rule},
+                 "contact_rule": {"distance": c.distance, "speed": c.speed, "velocity_rule": c.velocity_rule,
+                                  "velocity_points": RULE_POINT},
                  **({"motion_blur": {"subframes": blur.subframes, "shutter": blur.shutter}} if blur.enabled else {})}  # fmt: skip
         extra_people = []
         for i, (p, lp) in enumerate(zip(people, labels["people"], strict=False)):

@@ -33,7 +33,16 @@ from synth.config import (
     load_config,
 )
 from synth.generate import generate
-from synth.sequence import CONTACT_REGIONS, clip_segments, contact, contact_regions, place_tracks
+from synth.sequence import (
+    CONTACT_REGIONS,
+    RULE_POINT,
+    TOE_BASE,
+    clip_segments,
+    contact,
+    contact_regions,
+    place_tracks,
+    toe_base,
+)
 from synth.shards import read_shard
 from synth.validate import validate
 
@@ -330,6 +339,56 @@ def test_contact_needs_both_nearness_and_stillness_and_regions_split_the_foot():
     assert sorted(np.concatenate([reg["heel_l"], reg["toe_l"]])) == sorted(foot)
     assert v[reg["heel_l"], 2].mean() < v[reg["toe_l"], 2].mean()  # the heel behind the toes (+Z forward)
     assert all(len(reg[r]) for r in CONTACT_REGIONS)
+    names = list(model.keypoint_names)
+    for s in ("l", "r"):  # the toe base: inside the forefoot, at the metatarsal heads
+        idx = toe_base(model, model.vertex_bones.numpy(), v, kp)[f"toe_{s}"]
+        assert len(idx) >= 8 and set(idx) <= set(reg[f"toe_{s}"])
+        heel, tip, ankle = (kp[names.index(f"{k}_{s}")] for k in ("heel", "toe_tip", "ankle"))
+        c = v[idx].mean(0)
+        u = (c - heel) @ (tip - heel) / ((tip - heel) @ (tip - heel))
+        assert TOE_BASE[0] - 0.02 < u < TOE_BASE[1] + 0.02
+        assert v[idx, 1].min() < c[1] < min(ankle[1], v[idx, 1].max())  # between sole and instep, below the ankle
+
+
+def test_contact_velocity_follows_the_heel_and_the_toe_base(library, tmp_path):
+    """The velocity rule of the labels, recomputed on the rebuilt bodies of the frames with both
+    neighbours: the heel keypoint for the heels, the toe base's centroid for the toes. The fake clips
+    swing every atom, so the feet move at 2-5 m/s; a threshold of 3 m/s puts some toe tips and toe
+    bases on its two sides, so a rule on the toe tip fails the test."""
+    from synth.config import ContactConfig
+    from synth.validate import MeshRebuilder
+
+    T = 6
+    seq = SequenceConfig(enabled=True, frames=T, fps=30.0, cameras=CameraPaths(static=1.0),
+                         contact=ContactConfig(velocity_rule=3.0))  # fmt: skip
+    cfg = _cfg(library, sequence=seq, people=PeopleConfig(min=2, max=2), render=RenderConfig(spp=1))
+    generate(cfg, tmp_path, progress=False)
+    rebuild = MeshRebuilder(tmp_path, json.loads((tmp_path / "manifest.json").read_text())["config"])
+    docs = _docs(tmp_path)
+    names = docs[0]["keypoint_names"]
+    checked = straddle = 0
+    for a in range(0, len(docs), T):
+        clip = docs[a : a + T]
+        for i in range(len(clip[0]["people"])):
+            pts = []
+            for f, d in enumerate(clip):
+                assert d["contact_rule"]["velocity_points"] == RULE_POINT
+                v, _, kp = rebuild.mesh(d["people"][i])
+                if f == 0:
+                    base = toe_base(rebuild.model, rebuild.bones, v, kp)
+                pts.append([kp[names.index(n)] for n in ("heel_l", "heel_r", "toe_tip_l", "toe_tip_r")]
+                           + [v[base["toe_l"]].mean(0), v[base["toe_r"]].mean(0)])  # fmt: skip
+            pts = np.array(pts)
+            for f in range(1, T - 1):
+                speed = np.linalg.norm(pts[f + 1] - pts[f - 1], axis=1) * 30.0 / 2
+                heel_l, heel_r, tip_l, tip_r, base_l, base_r = speed
+                for r, sp, tip in (("heel_l", heel_l, None), ("heel_r", heel_r, None), ("toe_l", base_l, tip_l),
+                                   ("toe_r", base_r, tip_r)):  # fmt: skip
+                    if abs(sp - 3.0) > 1e-3:  # the labels' 6-decimal rounding decides nothing
+                        assert clip[f]["people"][i]["contact_velocity"][r] == bool(sp <= 3.0), (a, i, f, r, sp)
+                        checked += 1
+                        straddle += tip is not None and (tip <= 3.0) != (sp <= 3.0)
+    assert checked >= 40 and straddle >= 1
 
 
 def test_clip_segments_split_at_a_cut_of_the_root_or_a_joint():
