@@ -22,6 +22,7 @@ as a face, hand or body detector might add them (docs/markerless.md, "The ceilin
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -32,6 +33,7 @@ import numpy as np
 import torch
 
 import blsm
+from blsm.learn.keypoint_fit import KeypointFitConfig
 from blsm.learn.landmark_fit import default_selection
 from blsm.learn.register import KeypointTargets, register_keypoints, scan_data
 from blsm.learn.register_config import DEFAULT_CONFIG, load_config
@@ -170,6 +172,19 @@ def detected_landmarks(scans, weights):
     return out, extra
 
 
+def _overrides(items: list[str], cls) -> dict:
+    """``KEY=VALUE`` settings of the dataclass ``cls``, each value parsed as its field's type."""
+    types = {f.name: f.type for f in dataclasses.fields(cls)}
+    out = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        if key not in types:
+            raise SystemExit(f"register4d: {cls.__name__} has no setting {key!r}")
+        out[key] = {"int": int, "float": float, "bool": lambda v: v.lower() in ("1", "true", "yes")}.get(
+            str(types[key]), str)(value)
+    return out
+
+
 def run(model, scans, how, sequence, args, tag):
     cfg = load_config(DEFAULT_CONFIG)
     t0 = time.time()
@@ -195,7 +210,10 @@ def run(model, scans, how, sequence, args, tag):
                 from blsm.learn.keypoint_regressor import load_keypoint_regressor
 
                 kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
-        regs = register_keypoints(model, scans, targets, cfg, sequence=sequence, selection=sel, keypoints=kps)
+        kcfg = KeypointFitConfig(**_overrides(args.fit, KeypointFitConfig))
+        cfg = dataclasses.replace(cfg, **_overrides(args.stage2, type(cfg)))
+        regs = register_keypoints(model, scans, targets, cfg, keypoint_config=kcfg, sequence=sequence, selection=sel,
+                                  keypoints=kps, stage2_keypoints=args.stage2_keypoints)
     res = {"seconds": time.time() - t0, **errors(regs, scans), **extra}
     folder = args.out / tag
     folder.mkdir(parents=True, exist_ok=True)
@@ -224,6 +242,13 @@ def main() -> None:
     ap.add_argument("--detector", type=Path, default=None,
                     help="landmark detector file for --keypoints detector (default: the packaged one)")
     ap.add_argument("--out", type=Path, default=Path("out/register4d"))
+    ap.add_argument("--fit", action="append", default=[], metavar="KEY=VALUE",
+                    help="a KeypointFitConfig setting (Eqs. 6.4-6.6), repeatable")
+    ap.add_argument("--stage2", action="append", default=[], metavar="KEY=VALUE",
+                    help="a RegisterConfig setting of stage 2 (Eqs. 5.14-5.25), repeatable")
+    ap.add_argument("--stage2-keypoints", type=float, default=0.0,
+                    help="weight of the keypoints in stage 2 (a learnt --regressor only; 0: left out)")
+    ap.add_argument("--tag", default="", help="appended to the results' name")
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = blsm.load()
@@ -244,6 +269,7 @@ def main() -> None:
         tag = f"scans_{args.keypoints}" + ("_regressor" if args.regressor is not None else "")
         tag += f"_{args.extra.replace(',', '_')}" if args.keypoints == "exact" and args.extra else ""
         tag += f"_lmnoise{args.landmark_noise * 1000:g}" if args.landmark_noise > 0 else ""
+        tag += args.tag
         results["scans"] = run(model, scans, args.keypoints, False, args, tag)
         results["scans"]["ids"] = [s.meta["id"] for s in scans]
         name = f"{tag}.json"

@@ -88,6 +88,11 @@ class KeypointFitConfig:
         smooth_angle_accel: weight (m^2 per rad^2) of the mean squared second difference of the angles
             (the joints do not see twists).
         surface_rounds, surface_iterations: ICP rounds and L-BFGS iterations per round of Eq. 6.5.
+            24 x 60 (was 6 x 15 until 2026-11-28, far from converged): chosen on a validation
+            population of stand-in scans (docs/markerless.md, "Eq. 6.5 run to convergence").
+        stage2_iterations: iterations of the free-form stage after Eq. 6.5
+            (:func:`blsm.learn.surface_fit.refine`) in :func:`blsm.learn.register.register_keypoints`;
+            0 keeps ``RegisterConfig.iterations`` (150, the landmark registration's).
         lambda_kp: weight of the keypoint term in Eq. 6.5 (thesis: 0.1).
         scan_samples: points sampled on each scan per round (thesis: 10k). model_samples: on the model.
         crop_distance: scan samples farther than this from the current body, and MNN pairs longer
@@ -106,13 +111,14 @@ class KeypointFitConfig:
     smooth_accel: float = 0.1
     smooth_velocity: float = 0.0
     smooth_angle_accel: float = 1e-4
-    surface_rounds: int = 6
-    surface_iterations: int = 15
+    surface_rounds: int = 24
+    surface_iterations: int = 60
     lambda_kp: float = 0.1
     scan_samples: int = 10_000
     model_samples: int = 8_000
     crop_distance: float = 0.1
     max_triangle_area: float = 0.0
+    stage2_iterations: int = 300
     seed: int = 0
 
     def __post_init__(self) -> None:

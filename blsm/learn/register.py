@@ -287,6 +287,7 @@ def register_keypoints(
     crop_distance: float = 0.03,
     keypoints: KeypointSet | None = None,
     progress: bool = True,
+    stage2_keypoints: float = 0.0,
 ) -> list[Registration]:
     """Register scans from 3D keypoints (thesis Sec. 6.3): Eq. 6.4, Eqs. 6.5-6.6, then Eqs. 5.14-5.25.
 
@@ -305,6 +306,9 @@ def register_keypoints(
         keypoints: A_kp for the targets' names (e.g. a learnt detector regressor,
             :mod:`blsm.learn.keypoint_regressor`); default: the model's keypoints of those names.
         progress: print progress lines on stderr.
+        stage2_keypoints: with detector keypoints whose A_kp are all surface points (a learnt
+            regressor), keep them in stage 2 as Eq. 5.15's landmark term with this weight
+            (``lambda_lm``); 0 (the default) leaves them out.
 
     Returns:
         One :class:`Registration` per scan; the meta records the keypoints and the shared shape.
@@ -328,18 +332,22 @@ def register_keypoints(
     st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)
     bodies = st_sh.vertices(model).double().numpy()
     data = [_cropped(s, bodies[n], crop_distance, kcfg.max_triangle_area) for n, s in enumerate(scans)]
-    if selection is not None:  # landmarks (surface points): stage 2 keeps Eq. 5.15's landmark term
+    if stage2_keypoints > 0 and selection is None and bool((kps.joint >= 0).any()):
+        raise ValueError("stage2_keypoints needs keypoints that are all surface points (a learnt A_kp)")
+    if selection is not None or stage2_keypoints > 0:  # surface points: stage 2 keeps Eq. 5.15's landmark term
         sub = LandmarkSelection(kps.names, kps.vertices, kps.bary)
         data = [ScanData(d.vertices, d.faces, pts[n].double().numpy()) for n, d in enumerate(data)]
-        cfg2 = cfg
+        cfg2 = cfg if selection is not None else dataclasses.replace(cfg, lambda_lm=stage2_keypoints)
     else:  # detector keypoints are joints and biased points: no landmark term (Eq. 6.8)
         sub = LandmarkSelection([], torch.zeros(0, 3, dtype=torch.long), torch.zeros(0, 3))
         cfg2 = dataclasses.replace(cfg, lambda_lm=0.0)
+    if kcfg.stage2_iterations:
+        cfg2 = dataclasses.replace(cfg2, iterations=kcfg.stage2_iterations)
     t2 = time.perf_counter()
     v_d, s_hat, stats = refine(model, data, st_sh.stage1(model), sub, cfg2, log)
     t3 = time.perf_counter()
     if log:
-        log(f"Eqs. 6.5-6.6: {t2 - t1:.1f} s; stage 2: {cfg.iterations} iterations, {t3 - t2:.1f} s")
+        log(f"Eqs. 6.5-6.6: {t2 - t1:.1f} s; stage 2: {cfg2.iterations} iterations, {t3 - t2:.1f} s")
     regs = []
     for n, s in enumerate(scans):
         reg = _registration(model, s, n, cfg2, st_kp.stage1(model), st_sh.stage1(model), (v_d, s_hat, stats),

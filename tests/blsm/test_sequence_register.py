@@ -17,7 +17,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 TINY_REG = RegisterConfig(iterations=5, scan_samples=2000, model_samples=1000)
 TINY_KP = ("rigid_iterations: 10\ntrial_iterations: 0\niterations: 60\nsurface_rounds: 1\n"
-           "surface_iterations: 5\nscan_samples: 2000\nmodel_samples: 1000\n")
+           "surface_iterations: 5\nscan_samples: 2000\nmodel_samples: 1000\nstage2_iterations: 0\n")
 
 
 def _sequence(model, frames: int, selection):
@@ -62,6 +62,31 @@ def test_sequence_shares_shape_and_loads(model, selection, tmp_path):
         save_registration(r, tmp_path / "regs" / f"{s.meta['id']}.npz")
     back = load_registrations([tmp_path / "regs"])  # the format blsm learn reads
     assert len(back) == 3 and back[1].meta["sequence"] is True and back[1].meta["frame"] == 1
+
+
+def test_stage2_iterations_and_keypoints_in_stage2(model, selection, capsys):
+    """``KeypointFitConfig.stage2_iterations`` sets the free-form stage's iterations (0: the
+    RegisterConfig's); ``stage2_keypoints`` keeps surface keypoints there as a landmark term and
+    refuses joints."""
+    import dataclasses
+
+    from blsm.learn.keypoint_fit import KeypointFitConfig, KeypointSet
+
+    kcfg = KeypointFitConfig(rigid_iterations=10, trial_iterations=0, iterations=30, surface_rounds=1,
+                             surface_iterations=3, scan_samples=2000, model_samples=1000, stage2_iterations=0)
+    scans = [_S(d) for d in _sequence(model, 1, selection)]
+    surf = KeypointSet.of_selection(selection)  # surface points, as a learnt A_kp is
+    tg = [KeypointTargets(surf.names, scans[0].landmarks, np.ones(len(surf.names)))]
+    register_keypoints(model, scans, tg, TINY_REG, kcfg, keypoints=surf)
+    assert "stage 2: 5 iterations" in capsys.readouterr().err
+    register_keypoints(model, scans, tg, TINY_REG, dataclasses.replace(kcfg, stage2_iterations=7), keypoints=surf,
+                       stage2_keypoints=0.5)
+    err = capsys.readouterr().err
+    assert "stage 2: 7 iterations" in err
+    assert "lm rms" in err and "lm rms 0.00 mm" not in err  # the keypoints are in stage 2
+    joints = [KeypointTargets(list(model.keypoint_names), scans[0].keypoints.numpy(), np.ones(len(model.keypoint_names)))]
+    with pytest.raises(ValueError, match="surface points"):
+        register_keypoints(model, scans, joints, TINY_REG, kcfg, stage2_keypoints=0.5, progress=False)
 
 
 def test_cli_sequence_with_landmarks(model, selection, tmp_path, capsys):
