@@ -88,7 +88,7 @@ class KeypointFitConfig:
         smooth_angle_accel: weight (m^2 per rad^2) of the mean squared second difference of the angles
             (the joints do not see twists).
         surface_rounds, surface_iterations: ICP rounds and L-BFGS iterations per round of Eq. 6.5.
-            24 x 60 (was 6 x 15 until 2026-11-28, far from converged): chosen on a validation
+            48 x 60 (was 6 x 15 until 2026-11-28, far from converged): chosen on a validation
             population of stand-in scans (docs/markerless.md, "Eq. 6.5 run to convergence").
         stage2_iterations: iterations of the free-form stage after Eq. 6.5
             (:func:`blsm.learn.surface_fit.refine`) in :func:`blsm.learn.register.register_keypoints`;
@@ -111,7 +111,7 @@ class KeypointFitConfig:
     smooth_accel: float = 0.1
     smooth_velocity: float = 0.0
     smooth_angle_accel: float = 1e-4
-    surface_rounds: int = 24
+    surface_rounds: int = 48
     surface_iterations: int = 60
     lambda_kp: float = 0.1
     scan_samples: int = 10_000
