@@ -260,8 +260,8 @@ def main() -> None:
         scans = [load_scan(p) for p in sorted(seq.glob("frame_*.npz"))][: args.frames]
         how = args.keypoints + ("_regressor" if args.regressor is not None else "")
         for mode in args.modes.split(","):
-            results[mode] = run(model, scans, args.keypoints, mode == "together", args, f"{seq.name}_{how}_{mode}")
-        name = f"{seq.name}_{how}.json"
+            results[mode] = run(model, scans, args.keypoints, mode == "together", args, f"{seq.name}_{how}_{mode}{args.tag}")
+        name = f"{seq.name}_{how}{args.tag}.json"
     else:
         scans = [load_scan(p) for p in args.paths]
         for s, p in zip(scans, args.paths):

@@ -198,9 +198,7 @@ def contact_regions(
     bones, kp = list(model.bone_names), list(model.keypoint_names)
     out: dict[str, np.ndarray] = {}
     for s in ("l", "r"):
-        foot = np.nonzero(vertex_bones == bones.index(f"ankle_{s}"))[0]
-        heel, toe = keypoints[kp.index(f"heel_{s}")], keypoints[kp.index(f"toe_tip_{s}")]
-        u = (vertices[foot] - heel) @ (toe - heel) / max(float((toe - heel) @ (toe - heel)), 1e-12)
+        foot, u = _foot_axis(model, vertex_bones, vertices, keypoints, s)
         out[f"heel_{s}"], out[f"toe_{s}"] = foot[u < 0.5], foot[u >= 0.5]
         out[f"hand_{s}"] = np.nonzero(vertex_bones == bones.index(f"wrist_{s}"))[0]
         shank = np.nonzero(vertex_bones == bones.index(f"knee_{s}"))[0]
@@ -214,14 +212,22 @@ def toe_base(model: Any, vertex_bones: np.ndarray, vertices: np.ndarray, keypoin
     """Vertex indices whose centroid is the toe base of each foot (``toe_l``, ``toe_r``) of a posed
     person: the foot bone's vertices between the fractions :data:`TOE_BASE` of the heel-to-toe-tip
     axis. Their centroid lies inside the foot at the metatarsal heads, where SMPL's foot joint is."""
-    bones, kp = list(model.bone_names), list(model.keypoint_names)
     out = {}
     for s in ("l", "r"):
-        foot = np.nonzero(vertex_bones == bones.index(f"ankle_{s}"))[0]
-        heel, toe = keypoints[kp.index(f"heel_{s}")], keypoints[kp.index(f"toe_tip_{s}")]
-        u = (vertices[foot] - heel) @ (toe - heel) / max(float((toe - heel) @ (toe - heel)), 1e-12)
+        foot, u = _foot_axis(model, vertex_bones, vertices, keypoints, s)
         out[f"toe_{s}"] = foot[(u >= TOE_BASE[0]) & (u <= TOE_BASE[1])]
     return out
+
+
+def _foot_axis(
+    model: Any, vertex_bones: np.ndarray, vertices: np.ndarray, keypoints: np.ndarray, side: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """The foot bone's vertex indices on ``side`` (``"l"``, ``"r"``) and each one's position along
+    the heel-to-toe-tip axis (0 at the heel keypoint, 1 at the toe tip)."""
+    kp = list(model.keypoint_names)
+    foot = np.nonzero(vertex_bones == list(model.bone_names).index(f"ankle_{side}"))[0]
+    heel, toe = keypoints[kp.index(f"heel_{side}")], keypoints[kp.index(f"toe_tip_{side}")]
+    return foot, (vertices[foot] - heel) @ (toe - heel) / max(float((toe - heel) @ (toe - heel)), 1e-12)
 
 
 def contact(heights: np.ndarray, speeds: np.ndarray, distance: float, speed: float) -> bool:
