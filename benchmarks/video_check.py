@@ -64,7 +64,7 @@ def field_rules(dataset: Path, docs: list[dict]) -> dict:
     """The exact contact of the heels and toes against each rule of :data:`FIELD_RULES`, on the
     frames with both neighbours (the labels hold no frame outside a sequence): agreement per region
     and frame. The toe base comes from the rebuilt bodies (:class:`synth.validate.MeshRebuilder`)."""
-    from synth.sequence import toe_base
+    from synth.sequence import FEET, toe_base
     from synth.validate import MeshRebuilder
 
     cfg = json.loads((dataset / "manifest.json").read_text()).get("config", {})
@@ -80,8 +80,7 @@ def field_rules(dataset: Path, docs: list[dict]) -> dict:
             pts[k].append([kp[names.index(f"{k}_{s}")] for s in ("l", "r")])
         pts["toe_base"].append([v[base[f"toe_{s}"]].mean(0) for s in ("l", "r")])
     arr = {k: np.asarray(x).reshape(-1, T, 2, 3) for k, x in pts.items()}  # (sequences, T, side, 3)
-    feet = ("heel_l", "heel_r", "toe_l", "toe_r")
-    exact = np.array([[d["people"][0]["contact"][r] for r in feet] for d in docs]).reshape(-1, T, 4)[:, 1:-1]
+    exact = np.array([[d["people"][0]["contact"][r] for r in FEET] for d in docs]).reshape(-1, T, 4)[:, 1:-1]
     out = {}
     for name, (heel, toe, diff, thr) in FIELD_RULES.items():
         x = np.concatenate([arr[heel], arr[toe]], axis=2)  # (S, T, 4, 3): heel_l, heel_r, toe_l, toe_r
@@ -93,7 +92,7 @@ def field_rules(dataset: Path, docs: list[dict]) -> dict:
         agree = rule == exact
         out[name] = {
             "agreement_region_frames": round(float(agree.mean()), 4),
-            "per_region": {r: round(float(agree[..., i].mean()), 4) for i, r in enumerate(feet)},
+            "per_region": {r: round(float(agree[..., i].mean()), 4) for i, r in enumerate(FEET)},
             "exact_only": int((exact & ~rule).sum()), "rule_only": int((~exact & rule).sum()),
             "contact_rate_rule": round(float(rule.mean()), 3),
         }
@@ -131,18 +130,20 @@ def paths(args: argparse.Namespace) -> dict:
 
 
 def walks(args: argparse.Namespace) -> dict:
+    from synth.camera_paths import PATHS
+    from synth.sequence import FEET
+
     synth = str(Path(sys.executable).with_name("synth"))
     out = args.out / "walks"
     sets = ["camera.width=64", "camera.height=64", "render.spp=1", "people.max=1", "hair.enabled=false",
             f"poses.clips={json.dumps(WALKS)}", "poses.exclude_clips=[]",
             *[f"sequence.cameras.{k}={1.0 if k == 'static' else 0.0}" for k in
-              ("static", "pan", "dolly", "orbit", "tracking", "zoom", "handheld", "portrait", "long_lens")]]  # fmt: skip
+              PATHS]]  # fmt: skip
     _run([synth, "generate", args.config, "--out", str(out), "--num", str(args.walks), "--workers", str(args.workers),
           "--resume", *sum((["--set", s] for s in sets), [])])
     docs = _docs(out)
-    feet = ("heel_l", "heel_r", "toe_l", "toe_r")
-    exact = np.array([[d["people"][0]["contact"][r] for r in feet] for d in docs])
-    rule = np.array([[d["people"][0]["contact_velocity"][r] for r in feet] for d in docs])
+    exact = np.array([[d["people"][0]["contact"][r] for r in FEET] for d in docs])
+    rule = np.array([[d["people"][0]["contact_velocity"][r] for r in FEET] for d in docs])
     agree = exact == rule
     frames_agree = agree.all(1)
     # Where they differ: next to a change of either label (a heel strike, a toe-off) or not.
@@ -168,7 +169,7 @@ def walks(args: argparse.Namespace) -> dict:
         "rule_only": int((~exact & rule).sum()),
         "contact_rate_exact": round(float(exact.mean()), 3),
         "contact_rate_rule": round(float(rule.mean()), 3),
-        "per_region": {r: round(float(agree[:, i].mean()), 4) for i, r in enumerate(feet)},
+        "per_region": {r: round(float(agree[:, i].mean()), 4) for i, r in enumerate(FEET)},
         "agreement_within_one_frame": round(float(near_one.mean()), 4),
         "differ_next_to_a_change": round(float(near[~agree].mean()), 4) if (~agree).any() else None,
         "agreement_away_from_changes": round(float(agree[~near].mean()), 4),

@@ -319,6 +319,8 @@ def register_keypoints(
         raise ValueError(f"need one keypoint set per scan, got {len(scans)} scans and {len(targets)} sets")
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if progress else None
     kps, pts, conf = _stack_targets(model, targets, selection, keypoints)
+    if stage2_keypoints > 0 and selection is None and bool((kps.joint >= 0).any()):  # before any fitting
+        raise ValueError("stage2_keypoints needs keypoints that are all surface points (a learnt A_kp)")
     groups = torch.zeros(len(scans), dtype=torch.long) if sequence else torch.arange(len(scans))
     t0 = time.perf_counter()
     st_kp = fit_keypoints(model, kps, pts, conf, groups, kcfg)
@@ -332,8 +334,6 @@ def register_keypoints(
     st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)
     bodies = st_sh.vertices(model).double().numpy()
     data = [_cropped(s, bodies[n], crop_distance, kcfg.max_triangle_area) for n, s in enumerate(scans)]
-    if stage2_keypoints > 0 and selection is None and bool((kps.joint >= 0).any()):
-        raise ValueError("stage2_keypoints needs keypoints that are all surface points (a learnt A_kp)")
     if selection is not None or stage2_keypoints > 0:  # surface points: stage 2 keeps Eq. 5.15's landmark term
         sub = LandmarkSelection(kps.names, kps.vertices, kps.bary)
         data = [ScanData(d.vertices, d.faces, pts[n].double().numpy()) for n, d in enumerate(data)]
