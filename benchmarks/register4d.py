@@ -76,8 +76,11 @@ def exact_targets(model, scans, extra: list[str]):
     return out, kps
 
 
-def targets_of(model, scans, how: str, seed: int, noise: float):
-    """Per scan :class:`KeypointTargets` and the selection (for landmarks) or None."""
+def targets_of(model, scans, how: str, seed: int, noise: float, cache: Path | None = None):
+    """Per scan :class:`KeypointTargets` and the selection (for landmarks) or None.
+
+    ``cache``: a folder of MediaPipe keypoints per scan id (checked against the scan's mesh), so that a
+    sweep of fitting settings detects once; None detects every time."""
     rng = np.random.default_rng(seed)
     if how == "landmarks":
         sel = default_selection(model)
@@ -95,10 +98,33 @@ def targets_of(model, scans, how: str, seed: int, noise: float):
 
     out = []
     for s in scans:
+        cached = cache / f"{s.meta['id']}_{_scan_digest(s)[:16]}.json" if cache is not None else None
+        if cached is not None and cached.exists():  # the same scan's MediaPipe keypoints of an earlier run
+            d = json.loads(cached.read_text())
+            out.append(KeypointTargets(d["names"], np.asarray(d["points"], np.float64), np.asarray(d["confidence"]),
+                                       d["info"]))
+            continue
         k = scan_keypoints(s, where=s.meta["id"])  # MediaPipe
-        out.append(KeypointTargets(list(k.names), np.asarray(k.points), np.asarray(k.confidence),
-                                   {"views_with_person": getattr(k, "views_with_person", None)}))
+        t = KeypointTargets(list(k.names), np.asarray(k.points), np.asarray(k.confidence),
+                            {"views_with_person": getattr(k, "views_with_person", None)})
+        if cached is not None:
+            cache.mkdir(parents=True, exist_ok=True)
+            tmp = cached.with_suffix(".tmp")
+            tmp.write_text(json.dumps({"scan_sha256": _scan_digest(s), "names": t.names,
+                                       "points": [[None if not np.isfinite(c) else float(c) for c in p] for p in t.points],
+                                       "confidence": t.confidence.tolist(), "info": t.info}))
+            tmp.replace(cached)
+        out.append(t)
     return out, None
+
+
+def _scan_digest(scan) -> str:
+    """SHA-256 of a scan's vertices and faces: a keypoint cache entry belongs to exactly this mesh."""
+    import hashlib
+
+    h = hashlib.sha256(np.ascontiguousarray(scan.vertices, np.float32).tobytes())
+    h.update(np.ascontiguousarray(scan.faces, np.int64).tobytes())
+    return h.hexdigest()
 
 
 def errors(regs, scans) -> dict:
@@ -205,7 +231,7 @@ def run(model, scans, how, sequence, args, tag):
         if how == "exact":  # exact targets come with their own A_kp
             targets, kps = exact_targets(model, scans, [n for e in args.extra.split(",") if e for n in EXTRA[e]])
         else:
-            targets, sel = targets_of(model, scans, how, args.seed, args.noise)
+            targets, sel = targets_of(model, scans, how, args.seed, args.noise, args.keypoint_cache)
             if args.regressor is not None:  # A_kp learnt for the detector (blsm.learn.keypoint_regressor)
                 from blsm.learn.keypoint_regressor import load_keypoint_regressor
 
@@ -249,6 +275,8 @@ def main() -> None:
     ap.add_argument("--stage2-keypoints", type=float, default=0.0,
                     help="weight of the keypoints in stage 2 (a learnt --regressor only; 0: left out)")
     ap.add_argument("--tag", default="", help="appended to the results' name")
+    ap.add_argument("--keypoint-cache", type=Path, default=None,
+                    help="--keypoints mediapipe: folder of detected keypoints per scan, reused by later runs")
     args = ap.parse_args()
     torch.set_num_threads(1)
     model = blsm.load()
@@ -266,6 +294,12 @@ def main() -> None:
         scans = [load_scan(p) for p in args.paths]
         for s, p in zip(scans, args.paths):
             s.meta.setdefault("id", p.stem)
+        ids = [s.meta["id"] for s in scans]
+        for s, p in zip(scans, args.paths):  # populations all start at s00000_00: name such scans by their file
+            if ids.count(s.meta["id"]) > 1:
+                s.meta["id"] = p.stem
+        if len({s.meta["id"] for s in scans}) < len(scans):
+            raise SystemExit("register4d: two scans share an id and a file name")
         tag = f"scans_{args.keypoints}" + ("_regressor" if args.regressor is not None else "")
         tag += f"_{args.extra.replace(',', '_')}" if args.keypoints == "exact" and args.extra else ""
         tag += f"_lmnoise{args.landmark_noise * 1000:g}" if args.landmark_noise > 0 else ""

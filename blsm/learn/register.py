@@ -47,6 +47,7 @@ from blsm.learn.keypoint_fit import (
     fit_keypoints,
     fit_shape,
     near_body,
+    search_feet,
     search_hands,
 )  # fmt: skip
 from blsm.learn.landmark_fit import LandmarkSelection, Stage1, default_selection, fit_landmarks
@@ -331,7 +332,15 @@ def register_keypoints(
     raw = [(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64)) for s in scans]
     if selection is None:  # detector keypoints say nothing of the hands' orientation
         st_kp = search_hands(model, st_kp, raw)
-    st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)
+    if selection is None and 0 < kcfg.hand_search_round < kcfg.surface_rounds:  # the hands again, on the fitted shape
+        first = fit_shape(model, kps, pts, raw, st_kp, conf, dataclasses.replace(kcfg, surface_rounds=kcfg.hand_search_round), log)
+        first = search_hands(model, first, raw, around=True)
+        if kcfg.foot_search:
+            first = search_feet(model, first, raw)
+        rest = dataclasses.replace(kcfg, surface_rounds=kcfg.surface_rounds - kcfg.hand_search_round, seed=kcfg.seed + 1)
+        st_sh = fit_shape(model, kps, pts, raw, first, conf, rest, log)
+    else:
+        st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)
     bodies = st_sh.vertices(model).double().numpy()
     data = [_cropped(s, bodies[n], crop_distance, kcfg.max_triangle_area) for n, s in enumerate(scans)]
     if selection is not None or stage2_keypoints > 0:  # surface points: stage 2 keeps Eq. 5.15's landmark term

@@ -163,3 +163,56 @@ def test_bad_input(model, tmp_path):
     bad.write_text("robust_scale: -1\n")
     with pytest.raises(ValueError, match="k.yaml"):
         load_keypoint_config(bad)
+
+
+def test_search_hands_fine_grid_around_the_fit(model):
+    """The first search picks HAND_GRID's nearest combination; ``around=True`` steps HAND_GRID_FINE from
+    the fitted angles and so reaches angles between the coarse values; a fit already right stays."""
+    from blsm.learn.keypoint_fit import HAND_GRID, HAND_GRID_FINE, KeypointFit, search_hands
+    from blsm.learn.posing import pose
+
+    dtype = model.template.dtype
+    names = [k.format(s="l") for k in HAND_GRID]
+    idx = [model.dof_names.index(n) for n in names]
+    truth = torch.zeros(1, model.num_dofs, dtype=dtype)
+    truth[0, idx] = torch.tensor([0.75, 0.15, 0.3], dtype=dtype)  # between HAND_GRID's values, on the fine steps
+    lim = model.dof_limits.to(dtype)
+    assert bool(((truth[0, idx] >= lim[idx, 0]) & (truth[0, idx] <= lim[idx, 1])).all())
+    go, tr = torch.zeros(1, 3, dtype=dtype), torch.zeros(1, 3, dtype=dtype)
+    with torch.no_grad():
+        scan = pose(model, model.template[None], angles=truth, global_orient=go, transl=tr).vertices[0].double().numpy()
+    scans = [(scan, model.faces.numpy())]
+    fit = KeypointFit(torch.zeros(1, dtype=torch.long), torch.zeros(1, model.num_bone_coeffs, dtype=dtype),
+                      torch.zeros(1, model.num_shape_coeffs, dtype=dtype), torch.zeros(1, model.num_dofs, dtype=dtype),
+                      go, tr, torch.zeros(1, dtype=dtype))
+    coarse = search_hands(model, fit, scans)
+    got = coarse.angles[0, idx]
+    assert all(min(abs(float(a) - v) for v in HAND_GRID[k]) < 1e-6 for a, k in zip(got, HAND_GRID))  # coarse values only
+    err_coarse = float((got - truth[0, idx]).abs().max())
+    assert err_coarse > 0.1
+    fine = search_hands(model, coarse, scans, around=True)
+    err_fine = float((fine.angles[0, idx] - truth[0, idx]).abs().max())
+    assert err_fine < 0.05 < err_coarse
+    again = search_hands(model, fine, scans, around=True)  # the current angles are a candidate: kept
+    torch.testing.assert_close(again.angles, fine.angles)
+    steps = [max(abs(v) for v in vals) for vals in HAND_GRID_FINE.values()]
+    assert all(s < 0.5 for s in steps) and all(0.0 in vals for vals in HAND_GRID_FINE.values())
+
+
+def test_search_feet_around_the_fit(model):
+    """``search_feet`` moves a foot that the keypoint fit left 0.3 rad off back onto the scan."""
+    from blsm.learn.keypoint_fit import FOOT_GRID_FINE, KeypointFit, search_feet
+    from blsm.learn.posing import pose
+
+    dtype = model.template.dtype
+    idx = [model.dof_names.index(k.format(s="r")) for k in FOOT_GRID_FINE]
+    truth = torch.zeros(1, model.num_dofs, dtype=dtype)
+    truth[0, idx] = torch.tensor([0.3, 0.15, -0.15], dtype=dtype)
+    go, tr = torch.zeros(1, 3, dtype=dtype), torch.zeros(1, 3, dtype=dtype)
+    with torch.no_grad():
+        scan = pose(model, model.template[None], angles=truth, global_orient=go, transl=tr).vertices[0].double().numpy()
+    fit = KeypointFit(torch.zeros(1, dtype=torch.long), torch.zeros(1, model.num_bone_coeffs, dtype=dtype),
+                      torch.zeros(1, model.num_shape_coeffs, dtype=dtype), torch.zeros(1, model.num_dofs, dtype=dtype),
+                      go, tr, torch.zeros(1, dtype=dtype))
+    out = search_feet(model, fit, [(scan, model.faces.numpy())])
+    torch.testing.assert_close(out.angles, truth)  # the right foot found, the left one (already right) kept

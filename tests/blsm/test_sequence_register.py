@@ -89,6 +89,31 @@ def test_stage2_iterations_and_keypoints_in_stage2(model, selection, capsys):
         register_keypoints(model, scans, joints, TINY_REG, kcfg, stage2_keypoints=0.5, progress=False)
 
 
+def test_hand_and_foot_search_again_after_some_rounds(model, selection, capsys, monkeypatch):
+    """``hand_search_round=k`` splits Eq. 6.5: k rounds, the hands (and with ``foot_search`` the
+    feet) searched around that fit, then the remaining rounds; the total stays ``surface_rounds``."""
+    import dataclasses
+
+    import blsm.learn.register as reg
+    from blsm.learn.keypoint_fit import KeypointFitConfig
+
+    calls = []
+    real_hands, real_feet = reg.search_hands, reg.search_feet
+    monkeypatch.setattr(reg, "search_hands", lambda *a, **k: calls.append(("hands", k.get("around", False)))
+                        or real_hands(*a, **k))
+    monkeypatch.setattr(reg, "search_feet", lambda *a, **k: calls.append(("feet", True)) or real_feet(*a, **k))
+    kcfg = KeypointFitConfig(rigid_iterations=10, trial_iterations=0, iterations=30, surface_rounds=3,
+                             surface_iterations=2, scan_samples=2000, model_samples=1000, stage2_iterations=0)
+    scans = [_S(d) for d in _sequence(model, 1, selection)]
+    tg = [KeypointTargets(list(model.keypoint_names), scans[0].keypoints.numpy(), np.ones(len(model.keypoint_names)))]
+    register_keypoints(model, scans, tg, TINY_REG, kcfg)
+    assert calls == [("hands", False)] and capsys.readouterr().err.count("shape round") == 3
+    calls.clear()
+    register_keypoints(model, scans, tg, TINY_REG, dataclasses.replace(kcfg, hand_search_round=1, foot_search=True))
+    assert calls == [("hands", False), ("hands", True), ("feet", True)]
+    assert capsys.readouterr().err.count("shape round") == 3
+
+
 def test_cli_sequence_with_landmarks(model, selection, tmp_path, capsys):
     seq = tmp_path / "seq"
     seq.mkdir()
