@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 import time
 from dataclasses import replace
@@ -109,7 +110,7 @@ def targets_of(model, scans, how: str, seed: int, noise: float, cache: Path | No
                             {"views_with_person": getattr(k, "views_with_person", None)})
         if cached is not None:
             cache.mkdir(parents=True, exist_ok=True)
-            tmp = cached.with_suffix(".tmp")
+            tmp = cached.with_suffix(f".{os.getpid()}.tmp")
             tmp.write_text(json.dumps({"scan_sha256": _scan_digest(s), "names": t.names,
                                        "points": [[None if not np.isfinite(c) else float(c) for c in p] for p in t.points],
                                        "confidence": t.confidence.tolist(), "info": t.info}))

@@ -88,15 +88,18 @@ class KeypointFitConfig:
         smooth_angle_accel: weight (m^2 per rad^2) of the mean squared second difference of the angles
             (the joints do not see twists).
         surface_rounds, surface_iterations: ICP rounds and L-BFGS iterations per round of Eq. 6.5.
-            48 x 60 (was 6 x 15 until 2026-11-28, far from converged): chosen on a validation
-            population of stand-in scans (docs/markerless.md, "Eq. 6.5 run to convergence").
+            96 x 60 (6 x 15 until 2026-11-28, far from converged; 48 x 60 until 2026-12-01): chosen
+            on a validation population of stand-in scans (docs/markerless.md, "Eq. 6.5 run to
+            convergence").
         stage2_iterations: iterations of the free-form stage after Eq. 6.5
             (:func:`blsm.learn.surface_fit.refine`) in :func:`blsm.learn.register.register_keypoints`;
             0 keeps ``RegisterConfig.iterations`` (150, the landmark registration's).
         hand_search_round: after this many rounds of Eq. 6.5, search the hands again on the finer
             grid around the fitted angles (:func:`search_hands` with ``around=True``; the first search
             runs on the Eq. 6.4 body, mean shape), then run the remaining rounds; 0: no second search.
-        foot_search: at that round, search the ankles around the fit too (:func:`search_feet`).
+            48 (with 96 rounds) since 2026-12-01, chosen on the validation population.
+        foot_search: at that round, search the ankles around the fit too (:func:`search_feet`);
+            on since 2026-12-01 (validation population).
         lambda_kp: weight of the keypoint term in Eq. 6.5 (thesis: 0.1).
         scan_samples: points sampled on each scan per round (thesis: 10k). model_samples: on the model.
         crop_distance: scan samples farther than this from the current body, and MNN pairs longer
@@ -115,7 +118,7 @@ class KeypointFitConfig:
     smooth_accel: float = 0.1
     smooth_velocity: float = 0.0
     smooth_angle_accel: float = 1e-4
-    surface_rounds: int = 48
+    surface_rounds: int = 96
     surface_iterations: int = 60
     lambda_kp: float = 0.1
     scan_samples: int = 10_000
@@ -123,8 +126,8 @@ class KeypointFitConfig:
     crop_distance: float = 0.1
     max_triangle_area: float = 0.0
     stage2_iterations: int = 300
-    hand_search_round: int = 0
-    foot_search: bool = False
+    hand_search_round: int = 48
+    foot_search: bool = True
     seed: int = 0
 
     def __post_init__(self) -> None:
