@@ -80,8 +80,8 @@ def exact_targets(model, scans, extra: list[str]):
 def targets_of(model, scans, how: str, seed: int, noise: float, cache: Path | None = None):
     """Per scan :class:`KeypointTargets` and the selection (for landmarks) or None.
 
-    ``cache``: a folder of MediaPipe keypoints per scan id (checked against the scan's mesh), so that a
-    sweep of fitting settings detects once; None detects every time."""
+    ``cache``: a folder of MediaPipe keypoints per scan, named by its id and its mesh's SHA-256, so that
+    a sweep of fitting settings detects once; None detects every time."""
     rng = np.random.default_rng(seed)
     if how == "landmarks":
         sel = default_selection(model)

@@ -11,8 +11,9 @@ Two stages per scan, batched over scans:
 
 Without landmarks, :func:`register_keypoints` (thesis Sec. 6.3) starts from 3D keypoints instead:
 Eq. 6.4 (:func:`blsm.learn.keypoint_fit.fit_keypoints`), a grid search of the hands' orientation
-(:func:`blsm.learn.keypoint_fit.search_hands`, an engineering addition), Eqs. 6.5-6.6
-(:func:`blsm.learn.keypoint_fit.fit_shape`), then the same free-form stage 2 (Eqs. 5.14-5.25, used
+(:func:`blsm.learn.end_search.search_hands`, an engineering addition), Eqs. 6.5-6.6
+(:func:`blsm.learn.keypoint_fit.fit_shape`; after ``hand_search_round`` rounds the hands, and with
+``foot_search`` the ankles, are searched again around the fit), then the same free-form stage 2 (Eqs. 5.14-5.25, used
 instead of Eqs. 6.8-6.9) with no landmark term, on the scan cropped to the fitted body. Frames of one
 subject (a 4D sequence) share the bone and shape coefficients and are smoothed in time.
 
@@ -41,14 +42,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from blsm.learn.end_search import search_feet, search_hands
 from blsm.learn.keypoint_fit import (
     KeypointFitConfig,
     KeypointSet,
     fit_keypoints,
     fit_shape,
     near_body,
-    search_feet,
-    search_hands,
 )  # fmt: skip
 from blsm.learn.landmark_fit import LandmarkSelection, Stage1, default_selection, fit_landmarks
 from blsm.learn.posing import pose

@@ -168,7 +168,8 @@ def test_bad_input(model, tmp_path):
 def test_search_hands_fine_grid_around_the_fit(model):
     """The first search picks HAND_GRID's nearest combination; ``around=True`` steps HAND_GRID_FINE from
     the fitted angles and so reaches angles between the coarse values; a fit already right stays."""
-    from blsm.learn.keypoint_fit import HAND_GRID, HAND_GRID_FINE, KeypointFit, search_hands
+    from blsm.learn.end_search import HAND_GRID, HAND_GRID_FINE, search_hands
+    from blsm.learn.keypoint_fit import KeypointFit
     from blsm.learn.posing import pose
 
     dtype = model.template.dtype
@@ -201,7 +202,8 @@ def test_search_hands_fine_grid_around_the_fit(model):
 
 def test_search_feet_around_the_fit(model):
     """``search_feet`` moves a foot that the keypoint fit left 0.3 rad off back onto the scan."""
-    from blsm.learn.keypoint_fit import FOOT_GRID_FINE, KeypointFit, search_feet
+    from blsm.learn.end_search import FOOT_GRID_FINE, search_feet
+    from blsm.learn.keypoint_fit import KeypointFit
     from blsm.learn.posing import pose
 
     dtype = model.template.dtype
