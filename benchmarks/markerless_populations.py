@@ -8,6 +8,8 @@ Writes, each once (an existing folder is kept):
   4 of them with one posed scan; 12 scans);
 - ``heldout``: the held-out population every reported number is on (seed 101, 12 subjects, 6 with
   one posed scan; 18 scans);
+- ``heldout2``: a second held-out population, made after the 2026-12-01 defaults were chosen, to
+  check the held-out number on other subjects (seed 707, 12 subjects, 6 with one posed scan);
 - ``extra_stool``: one subject with a stool and 6 floor markers (seed 202);
 - ``extra_nofeet``: one subject without feet (seed 303);
 - ``extra/stool.npz``, ``extra/nofeet.npz``: the scans of the last two under names of their own (the
@@ -26,6 +28,7 @@ from pathlib import Path
 POPULATIONS = {  # name: (subjects, posed subjects, seed, artefacts)
     "val": (8, 4, 505, {}),
     "heldout": (12, 6, 101, {}),
+    "heldout2": (12, 6, 707, {}),
     "extra_stool": (1, 0, 202, {"stool": True, "floor_markers": 6}),
     "extra_nofeet": (1, 0, 303, {"missing_feet": True}),
 }
