@@ -99,7 +99,8 @@ def targets_of(model, scans, how: str, seed: int, noise: float, cache: Path | No
 
     out = []
     for s in scans:
-        cached = cache / f"{s.meta['id']}_{_scan_digest(s)[:16]}.json" if cache is not None else None
+        digest = _scan_digest(s) if cache is not None else None
+        cached = cache / f"{s.meta['id']}_{digest[:16]}.json" if cache is not None else None
         if cached is not None and cached.exists():  # the same scan's MediaPipe keypoints of an earlier run
             d = json.loads(cached.read_text())
             out.append(KeypointTargets(d["names"], np.asarray(d["points"], np.float64), np.asarray(d["confidence"]),
@@ -111,7 +112,7 @@ def targets_of(model, scans, how: str, seed: int, noise: float, cache: Path | No
         if cached is not None:
             cache.mkdir(parents=True, exist_ok=True)
             tmp = cached.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(json.dumps({"scan_sha256": _scan_digest(s), "names": t.names,
+            tmp.write_text(json.dumps({"scan_sha256": digest, "names": t.names,
                                        "points": [[None if not np.isfinite(c) else float(c) for c in p] for p in t.points],
                                        "confidence": t.confidence.tolist(), "info": t.info}))
             tmp.replace(cached)
@@ -296,7 +297,7 @@ def main() -> None:
         for s, p in zip(scans, args.paths):
             s.meta.setdefault("id", p.stem)
         ids = [s.meta["id"] for s in scans]
-        for s, p in zip(scans, args.paths):  # populations all start at s00000_00: name such scans by their file
+        for s, p in zip(scans, args.paths, strict=True):  # populations all start at s00000_00: use the file name
             if ids.count(s.meta["id"]) > 1:
                 s.meta["id"] = p.stem
         if len({s.meta["id"] for s in scans}) < len(scans):

@@ -79,21 +79,20 @@ def _search_end(model, fit: KeypointFit, scans, bone: str, grid: dict[str, tuple
     angles = fit.angles.clone()
     offs, b = fit.offsets(model), fit.bone_scales(model)
     lim = model.dof_limits.to(angles.dtype)
+    steps = torch.tensor(list(itertools.product(*grid.values())), dtype=angles.dtype)  # (C, 3)
+    sides = []  # per side: the grid's dof indices, the end bone, its vertices
+    for side in ("l", "r"):
+        names = [k.format(s=side) for k in grid]
+        if all(n in model.dof_names for n in names):
+            j = model.bone_names.index(bone.format(s=side))
+            sides.append(([model.dof_names.index(n) for n in names], j, model.vertex_bones == j))
     for t, (sv, _) in enumerate(scans):
         sv = np.asarray(sv, np.float64)
         tree = cKDTree(sv)
-        for side in ("l", "r"):
-            names = [k.format(s=side) for k in grid]
-            if not all(n in model.dof_names for n in names):
-                continue
-            idx = [model.dof_names.index(n) for n in names]
-            combos = torch.tensor(list(itertools.product(*grid.values())), dtype=angles.dtype)  # (C, 3)
-            if around:
-                combos = combos + angles[t, idx]
+        for idx, j, is_end in sides:
+            combos = steps + angles[t, idx] if around else steps
             cand = angles[t:t + 1].repeat(len(combos), 1)
             cand[:, idx] = torch.maximum(torch.minimum(combos, lim[idx, 1]), lim[idx, 0])
-            j = model.bone_names.index(bone.format(s=side))
-            is_end = model.vertex_bones == j
             with torch.no_grad():
                 p = pose(model, model.template + offs[t], bone_scales=b[t:t + 1], angles=cand,
                          global_orient=fit.global_orient[t:t + 1], transl=fit.transl[t:t + 1])
@@ -107,4 +106,5 @@ def _search_end(model, fit: KeypointFit, scans, bone: str, grid: dict[str, tuple
                 d_s = np.minimum(cKDTree(ends[c]).query(local, k=1, distance_upper_bound=cap)[0], rest)
                 cost[c] = d_h + (d_s.mean() if len(local) else 0.0)
             angles[t] = cand[int(np.argmin(cost))]
-    return KeypointFit(fit.groups, fit.bone, fit.shape, angles, fit.global_orient, fit.transl, fit.keypoint_error)
+    return KeypointFit(fit.groups, fit.bone, fit.shape, angles, fit.global_orient, fit.transl,
+                       fit.keypoint_error)

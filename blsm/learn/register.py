@@ -13,9 +13,10 @@ Without landmarks, :func:`register_keypoints` (thesis Sec. 6.3) starts from 3D k
 Eq. 6.4 (:func:`blsm.learn.keypoint_fit.fit_keypoints`), a grid search of the hands' orientation
 (:func:`blsm.learn.end_search.search_hands`, an engineering addition), Eqs. 6.5-6.6
 (:func:`blsm.learn.keypoint_fit.fit_shape`; after ``hand_search_round`` rounds the hands, and with
-``foot_search`` the ankles, are searched again around the fit), then the same free-form stage 2 (Eqs. 5.14-5.25, used
-instead of Eqs. 6.8-6.9) with no landmark term, on the scan cropped to the fitted body. Frames of one
-subject (a 4D sequence) share the bone and shape coefficients and are smoothed in time.
+``foot_search`` the ankles, are searched again around the fit), then the same free-form stage 2
+(Eqs. 5.14-5.25, used instead of Eqs. 6.8-6.9) with no landmark term, on the scan cropped to the
+fitted body. Frames of one subject (a 4D sequence) share the bone and shape coefficients and are
+smoothed in time.
 
 The settings are a :class:`blsm.learn.register_config.RegisterConfig`; the results are
 :class:`blsm.learn.registrations.Registration` records (``blsm-registration`` files).
@@ -332,12 +333,13 @@ def register_keypoints(
     raw = [(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64)) for s in scans]
     if selection is None:  # detector keypoints say nothing of the hands' orientation
         st_kp = search_hands(model, st_kp, raw)
-    if selection is None and 0 < kcfg.hand_search_round < kcfg.surface_rounds:  # the hands again, on the fitted shape
-        first = fit_shape(model, kps, pts, raw, st_kp, conf, dataclasses.replace(kcfg, surface_rounds=kcfg.hand_search_round), log)
+    k = kcfg.hand_search_round
+    if selection is None and 0 < k < kcfg.surface_rounds:  # the hands (and feet) again, on the fitted shape
+        first = fit_shape(model, kps, pts, raw, st_kp, conf, dataclasses.replace(kcfg, surface_rounds=k), log)
         first = search_hands(model, first, raw, around=True)
         if kcfg.foot_search:
             first = search_feet(model, first, raw)
-        rest = dataclasses.replace(kcfg, surface_rounds=kcfg.surface_rounds - kcfg.hand_search_round, seed=kcfg.seed + 1)
+        rest = dataclasses.replace(kcfg, surface_rounds=kcfg.surface_rounds - k, seed=kcfg.seed + 1)
         st_sh = fit_shape(model, kps, pts, raw, first, conf, rest, log)
     else:
         st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)

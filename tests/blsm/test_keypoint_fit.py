@@ -188,7 +188,8 @@ def test_search_hands_fine_grid_around_the_fit(model):
                       go, tr, torch.zeros(1, dtype=dtype))
     coarse = search_hands(model, fit, scans)
     got = coarse.angles[0, idx]
-    assert all(min(abs(float(a) - v) for v in HAND_GRID[k]) < 1e-6 for a, k in zip(got, HAND_GRID))  # coarse values only
+    assert all(min(abs(float(a) - v) for v in HAND_GRID[k]) < 1e-6 for a, k in zip(got, HAND_GRID, strict=True))
+    # the coarse grid's values only
     err_coarse = float((got - truth[0, idx]).abs().max())
     assert err_coarse > 0.1
     fine = search_hands(model, coarse, scans, around=True)
