@@ -65,6 +65,9 @@ ROWS = {  # name: (lever, data configs, recovery config)
                                         "the spread between runs of one recipe", ("garments_subjects",), "garments_effects_subjects_seed1"),
     "garments_effects_subjects_seed2": ("garments_effects_subjects again with train.seed 2", ("garments_subjects",),
                                         "garments_effects_subjects_seed2"),
+    "garments_effects_subjects_frontal": ("views as photographs show people: garments_effects_subjects with half of the cameras "
+                                          "within 45 degrees of the first person's front (camera.frontal_rate 0.5)",
+                                          ("garments_subjects_frontal",), "garments_effects_subjects_frontal"),
     "gpu_imagenet_lite0": ("backbone pair at the packaged crop budget: EfficientNet-Lite0 from ImageNet, 288k crops of the subjects data (GPU)",
                            ("subjects",), "gpu_imagenet_lite0"),
     "gpu_imagenet_lite2": ("backbone pair at the packaged crop budget: EfficientNet-Lite2 from ImageNet, 288k crops of the subjects data (GPU)",

@@ -34,6 +34,7 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--max-people", type=int, default=0, help="at most N people, spread over the set (0: all)")
     e.add_argument("--batch", type=int, default=32)
     e.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation (average with the mirrored crop)")
+    e.add_argument("--no-antialias", action="store_true", help="crop by bilinear sampling alone (as before 2026-12-02)")
     pr = sub.add_parser("predict")
     pr.add_argument("checkpoint")
     pr.add_argument("image")
@@ -66,6 +67,8 @@ def _parser() -> argparse.ArgumentParser:
                    "(default: blsm/pose2d/mediapipe_pose.py in .venv-reference)")
     r.add_argument("--sheet", type=int, default=48, help="people on each overlay sheet")
     r.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
+    r.add_argument("--no-antialias", action="store_true", help="crop by bilinear sampling alone, without the "
+                   "prefilter of a shrinking crop (the check before 2026-12-02)")
     return p
 
 
@@ -101,7 +104,8 @@ def _run(args: argparse.Namespace) -> int:
 
         if args.max_people < 0 or args.batch < 1:
             raise ValueError("--max-people must be >= 0 and --batch >= 1")
-        res = evaluate(args.checkpoint, args.dataset, args.out, batch=args.batch, max_people=args.max_people, flip=args.flip)
+        res = evaluate(args.checkpoint, args.dataset, args.out, batch=args.batch, max_people=args.max_people, flip=args.flip,
+                       antialias=not args.no_antialias)
         print(format_report(res))
         print(f"wrote {args.out}/metrics.json and {args.out}/sheet.png")
         return 0
@@ -142,7 +146,8 @@ def _run(args: argparse.Namespace) -> int:
         if args.synthetic_people < 1 or args.sheet < 0:
             raise ValueError("--synthetic-people must be >= 1 and --sheet >= 0")
         rep = run_transfer(args.checkpoint, args.real, args.synthetic, args.out, args.reference_command,
-                           args.synthetic_people, flip=args.flip, sheet_count=args.sheet)
+                           args.synthetic_people, flip=args.flip, sheet_count=args.sheet,
+                           antialias=not args.no_antialias)
         print(format_report(rep))
         print(f"wrote {args.out}/report.json, report.md, sheet_real.png, sheet_synthetic.png")
         return 0

@@ -9,7 +9,9 @@ A sample draws, from the sample's own random generator:
 - the focal length as a full-frame-equivalent lens (36 mm sensor width), log-uniform in
   ``focal_mm``;
 - the view: yaw uniform in ``yaw_deg`` about the person, elevation uniform in ``elevation_deg``, a
-  small roll (normal, ``roll_sd_deg``); with probability ``rare_rate`` a rare view instead:
+  small roll (normal, ``roll_sd_deg``); with probability ``frontal_rate`` (0 by default: no draw)
+  the yaw is instead uniform in ``frontal_yaw_deg`` about the direction the first person faces, as
+  photographs mostly show people from the front; with probability ``rare_rate`` a rare view instead:
   from above (elevation 55..85), from below (-50..-25) or upside down (roll 180), equally likely;
 - with ``height_m`` (the default, 1.4 to 2.0 m) a normal or upside-down view instead places the camera
   at a height drawn uniformly there, above the ground ``y = 0`` the people stand on, and aims it at
@@ -56,6 +58,8 @@ class CameraConfig:
     truncation_rate: float = 0.1
     height_m: tuple[float, ...] = (1.4, 2.0)
     f_number: tuple[float, ...] = ()
+    frontal_rate: float = 0.0
+    frontal_yaw_deg: tuple[float, float] = (-45.0, 45.0)
 
     def __post_init__(self) -> None:
         if self.width < 1 or self.height < 1:
@@ -64,7 +68,9 @@ class CameraConfig:
             raise ValueError(
                 f"camera size {self.width}x{self.height} is over the limit of {MAX_IMAGE_SIDE} px a side"
             )
-        for name in ("focal_mm", "yaw_deg", "elevation_deg", "fill"):
+        if not 0.0 <= self.frontal_rate <= 1.0:
+            raise ValueError(f"camera frontal_rate must be in [0, 1], got {self.frontal_rate}")
+        for name in ("focal_mm", "yaw_deg", "elevation_deg", "fill", "frontal_yaw_deg"):
             lo, hi = getattr(self, name)
             if not lo <= hi:
                 raise ValueError(f"camera {name} must be [low, high], got {[lo, hi]}")
@@ -119,11 +125,23 @@ def aimed_camera(eye: np.ndarray, target: np.ndarray, roll: float, focal_px: flo
     return Camera(K=k, R=r, t=-r @ eye, width=cfg.width, height=cfg.height)
 
 
+def facing_yaw_deg(global_orient: np.ndarray) -> float:
+    """The yaw (degrees about +Y; 0: +Z) of the direction a body with root rotation vector
+    ``global_orient`` (3,) faces: its rest forward axis +Z, rotated, in the ground plane."""
+    from scipy.spatial.transform import Rotation
+
+    f = Rotation.from_rotvec(np.asarray(global_orient, np.float64)).apply([0.0, 0.0, 1.0])
+    return math.degrees(math.atan2(f[0], f[2]))
+
+
 def sample_camera(
-    points: np.ndarray, cfg: CameraConfig, rng: np.random.Generator, roll_deg: float = 0.0
+    points: np.ndarray, cfg: CameraConfig, rng: np.random.Generator, roll_deg: float = 0.0,
+    facing_deg: float = 0.0,
 ) -> tuple[Camera, dict[str, Any]]:
     """Sample a camera framing ``points`` (the person's vertices or keypoints, world metres);
-    ``roll_deg`` is added to the drawn roll (a portrait camera's 90 degrees).
+    ``roll_deg`` is added to the drawn roll (a portrait camera's 90 degrees); ``facing_deg``: the
+    yaw of the direction the first person faces (0: +Z, the rest pose's), the centre of
+    ``frontal_yaw_deg``.
 
     Returns:
         The camera and a dict of what was drawn: ``view`` ("normal", "above", "below",
@@ -139,6 +157,8 @@ def sample_camera(
     f_mm = float(math.exp(rng.uniform(math.log(cfg.focal_mm[0]), math.log(cfg.focal_mm[1]))))
     f_px = f_mm / SENSOR_WIDTH_MM * cfg.width
     yaw = math.radians(rng.uniform(*cfg.yaw_deg))
+    if cfg.frontal_rate > 0 and rng.uniform() < cfg.frontal_rate:  # no draw at 0: the old streams
+        yaw = math.radians(facing_deg + rng.uniform(*cfg.frontal_yaw_deg))
     elev = math.radians(rng.uniform(*cfg.elevation_deg))
     roll = math.radians(rng.normal(0.0, cfg.roll_sd_deg) + roll_deg)
     view = "normal"

@@ -561,6 +561,8 @@ class GeneratorConfig:
         if self.sequence.enabled:
             if self.occluders.enabled:
                 raise ValueError("occluders.enabled applies to single images, not to sequence.enabled")
+            if self.camera.frontal_rate:
+                raise ValueError("camera.frontal_rate applies to single images, not to sequence.enabled")
             if self.poses.source != "library":
                 raise ValueError("sequence.enabled needs poses.source: library (each person plays a motion clip)")
             if self.pipeline == "raw":

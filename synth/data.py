@@ -182,16 +182,82 @@ def color_jitter(image: torch.Tensor, jitter: tuple[float, float, float, float])
     return x[0].clamp(0.0, 1.0)
 
 
-def warp_to_crop(image: torch.Tensor, affine: np.ndarray, crop: int, mode: str = "bilinear") -> torch.Tensor:
+def warp_to_crop(image: torch.Tensor, affine: np.ndarray, crop: int, mode: str = "bilinear",
+                 antialias: bool = True) -> torch.Tensor:
     """Warp (C, H, W) into (C, crop, crop) with :func:`crop_affine`'s ``A``; zeros outside.
 
     kornia's ``warp_affine`` (``align_corners=True``) puts pixel centres at integers, so ``A`` is
     conjugated by the half-pixel shift: output pixel ``(u, v)`` samples ``A^-1 (u + .5, v + .5) - .5``.
+
+    With ``antialias`` (bilinear only) a crop that shrinks its source by ``s > 1`` source pixels per
+    crop pixel is low-pass filtered first (:func:`prefilter_for_crop`): bilinear sampling alone reads
+    4 of every ``s^2`` source pixels, so a person photographed at 800 px and seen at 128 px would
+    arrive aliased, a look no rendered training crop has.
     """
+    if antialias and mode == "bilinear":
+        image, affine = prefilter_for_crop(image, affine, crop)
     half = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
     m = np.linalg.inv(half) @ affine @ half
     mt = torch.as_tensor(m[None, :2], dtype=image.dtype)
     return warp_affine(image[None], mt, (crop, crop), mode=mode, align_corners=True)[0]
+
+
+def crop_shrink(affine: np.ndarray) -> float:
+    """Source pixels per crop pixel of a similarity ``A`` (:func:`crop_affine`): ``|det A|^-1/2``."""
+    return float(abs(np.linalg.det(np.asarray(affine, np.float64)[:2, :2])) ** -0.5)
+
+
+def prefilter_for_crop(image: torch.Tensor, affine: np.ndarray, crop: int) -> tuple[torch.Tensor, np.ndarray]:
+    """The source region a crop reads, low-pass filtered for its shrink ``s`` (:func:`crop_shrink`),
+    and the affine from that region's pixels to the crop's. Identity where ``s <= 1``.
+
+    The region is the crop's footprint plus a margin, cut from the image (what lies outside the
+    image stays outside: the warp fills it with zeros). Then, as an image pyramid does, it is
+    averaged over ``k x k`` blocks for the integer part ``k = floor(s)`` (area resampling; the
+    block ``i`` covers source pixels ``[k i, k i + k)``, centre ``k (i + 1/2)``, so the affine gains
+    ``diag(k, k, 1)``), and the remaining shrink ``r = s / k`` in ``[1, 2)`` is covered by a
+    Gaussian of ``sigma = (r - 1) / 2`` (scikit-image's ``resize`` anti-aliasing rule).
+
+    Args:
+        image: (C, H, W) float.
+        affine: (3, 3) source -> crop pixel coordinates (pixel centres at integer + 0.5).
+        crop: crop side in pixels.
+    """
+    from kornia.filters import gaussian_blur2d
+
+    affine = np.asarray(affine, np.float64)
+    s = crop_shrink(affine)
+    if not s > 1.0 + 1e-6:
+        return image, affine
+    h, w = image.shape[-2:]
+    inv = np.linalg.inv(affine)
+    corners = np.array([[0, 0, 1], [crop, 0, 1], [0, crop, 1], [crop, crop, 1]], np.float64) @ inv.T
+    margin = 3.0 * s + 2.0
+    k = int(math.floor(s))
+    # the region starts on the block grid of the whole image, so two crops of one image at one
+    # shrink see the same blocks wherever they lie (the cache's crop and the dataset's agree)
+    x0 = int(np.clip(np.floor(corners[:, 0].min() - margin), 0, w)) // k * k
+    x1 = int(np.clip(np.ceil(corners[:, 0].max() + margin), 0, w))
+    y0 = int(np.clip(np.floor(corners[:, 1].min() - margin), 0, h)) // k * k
+    y1 = int(np.clip(np.ceil(corners[:, 1].max() + margin), 0, h))
+    if x1 - x0 < 1 or y1 - y0 < 1:  # the crop sees none of the image: zeros either way
+        return image, affine
+    region = image[..., y0:y1, x0:x1]
+    shift = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])
+    affine = affine @ shift
+    if k >= 2:
+        rh, rw = region.shape[-2:]
+        ph, pw = -rh % k, -rw % k  # the last block is filled by repeating the edge (under one block)
+        if ph or pw:
+            region = torch.nn.functional.pad(region[None], (0, pw, 0, ph), mode="replicate")[0]
+        region = torch.nn.functional.avg_pool2d(region[None], k)[0]
+        affine = affine @ np.diag([float(k), float(k), 1.0])
+        s = s / k
+    sigma = (s - 1.0) / 2.0
+    if sigma > 0.05:
+        size = 2 * int(math.ceil(3.0 * sigma)) + 1
+        region = gaussian_blur2d(region[None], (size, size), (sigma, sigma), border_type="replicate")[0]
+    return region, affine
 
 
 class DatasetIndex:
@@ -392,6 +458,8 @@ class SynthDataset(SeededDataset):
             worker); an int: item ``i`` in epoch ``e`` (:meth:`set_epoch`) is a function of
             ``(seed, e, i)``.
         allow_incomplete: accept a manifest of an unfinished generation run.
+        antialias: prefilter a crop that shrinks its image (:func:`warp_to_crop`; off: bilinear
+            sampling alone, as before 2026-12-02).
 
     Raises:
         ValueError: one line naming the file, on a bad folder, manifest, shard or sample.
@@ -411,13 +479,14 @@ class SynthDataset(SeededDataset):
         normalize: bool = False,
         seed: int | None = None,
         allow_incomplete: bool = False,
+        antialias: bool = True,
     ) -> None:
         if person not in ("all", "largest"):
             raise ValueError(f"person must be 'all' or 'largest', got {person!r}")
         if crop < 1 or box_scale <= 0:
             raise ValueError(f"crop and box_scale must be positive, got {crop}, {box_scale}")
         self.crop, self.augment, self.box_scale = int(crop), augment, float(box_scale)
-        self.normalize, self.seed, self.epoch = normalize, seed, 0
+        self.normalize, self.seed, self.epoch, self.antialias = normalize, seed, 0, bool(antialias)
         self.index = DatasetIndex(path, allow_incomplete)
         self.items: list[tuple[int, int]] = []
         names: list[str] | None = None
@@ -462,7 +531,8 @@ class SynthDataset(SeededDataset):
         lmat = camera_rotation(params.rotation_deg, params.flip)
         mirror = np.diag([-1.0 if params.flip else 1.0, 1.0, 1.0])
 
-        image = warp_to_crop(torch.tensor(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop)
+        image = warp_to_crop(torch.tensor(rgb).permute(2, 0, 1).float() / 255.0, amat, self.crop,
+                             antialias=self.antialias)
         image = color_jitter((image * torch.tensor(params.color).view(3, 1, 1)).clamp(0.0, 1.0), params.jitter)
         if self.normalize:
             image = (image - MEAN_CHW) / STD_CHW

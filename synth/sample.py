@@ -32,7 +32,7 @@ from blsm.color import linear_to_srgb, srgb_to_linear
 from synth import backgrounds as bg
 from synth import format as fmt
 from synth import labels as lab
-from synth.camera import outline_index, sample_camera
+from synth.camera import facing_yaw_deg, outline_index, sample_camera
 from synth.config import GeneratorConfig
 from synth.postures import seats, vary
 from synth.render import PeopleRenderer, RenderMesh, people_window
@@ -461,7 +461,8 @@ class SampleMaker:
         for p, d in zip(people, place_people([footprint(p.outline) for p in people], cfg.people.gap, rng)):
             p.move(d - np.array([0.0, p.vertices[:, 1].min(), 0.0]))  # the body's feet on the floor y = 0
         outline = np.concatenate([p.outline for p in people])  # every person's hull vertices
-        camera, cam_info = sample_camera(outline, cfg.camera, rng)
+        facing = facing_yaw_deg(people[0].global_orient) if cfg.camera.frontal_rate else 0.0
+        camera, cam_info = sample_camera(outline, cfg.camera, rng, facing_deg=facing)
         back = self.background(rng, camera)
         occluders = seats(people, self.model.bone_names, rng) if cfg.poses.seated_rate else []
         if cfg.occluders.enabled:

@@ -27,7 +27,7 @@ from synth.data import SynthDataset
 from synth.shards import MANIFEST
 
 CACHE_FORMAT = "recovery-crop-cache"
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: crops prefiltered where they shrink the image (synth.data.warp_to_crop)
 VIEWS = ("normal", "rare")
 
 

@@ -236,10 +236,11 @@ def hits(pred: np.ndarray, ref: np.ndarray, vis: np.ndarray, side: np.ndarray, a
 
 
 def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.ndarray, ok: np.ndarray,
-                   batch: int = 32) -> tuple[np.ndarray, list[dict[str, Any]]]:
+                   batch: int = 32, antialias: bool = True) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(N, 17, 2) the joints of predictor ``pr`` (:func:`recovery.predictor.load_predictor`) in
     image pixels (NaN where not scored) and, per scored person, what the sheet draws (crop, mesh,
-    K_crop, affine)."""
+    K_crop, affine). ``antialias``: :func:`synth.data.warp_to_crop`'s prefilter (off: bilinear
+    sampling alone, as before 2026-12-02)."""
     from recovery.predict import read_image
     from synth.data import crop_affine, warp_to_crop
 
@@ -260,7 +261,8 @@ def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.n
             h, w = img.shape[:2]
             k = p.K if p.K is not None else np.array([[max(w, h), 0, w / 2], [0, max(w, h), h / 2], [0, 0, 1.0]])
             a = crop_affine(tuple(centre[i]), float(side[i]) * CROP_SCALE, pr.crop)
-            crops.append(warp_to_crop(torch.from_numpy(img).permute(2, 0, 1).float() / 255.0, a, pr.crop))
+            crops.append(warp_to_crop(torch.from_numpy(img).permute(2, 0, 1).float() / 255.0, a, pr.crop,
+                                      antialias=antialias))
             ks.append(torch.tensor(a @ k, dtype=torch.float32))
             affs.append(a)
         with torch.no_grad():
@@ -460,7 +462,8 @@ def reference_command(spec: str | None) -> list[str]:
     return [str(python), str(REFERENCE_SCRIPT)]
 
 
-def score_domain(name: str, people: list[Person], command: list[str], out: Path, pr: Any) -> tuple[Domain, list[dict[str, Any]]]:
+def score_domain(name: str, people: list[Person], command: list[str], out: Path, pr: Any,
+                 antialias: bool = True) -> tuple[Domain, list[dict[str, Any]]]:
     """One domain scored: the reference (answers cached in ``out/reference.json``), the box rule,
     the floor and predictor ``pr``'s joints; returns the :class:`Domain` and the sheet's views."""
     if not people:
@@ -469,14 +472,15 @@ def score_domain(name: str, people: list[Person], command: list[str], out: Path,
     vis = visible_joints(ref, [p.size for p in people])
     centre, side, ok = person_boxes(ref, vis)
     floor = mean_pose_floor(ref, vis, centre, side, ok)
-    ours, views = predict_joints(pr, people, centre, side, ok)
+    ours, views = predict_joints(pr, people, centre, side, ok, antialias=antialias)
     return Domain(name, people, ref, vis, centre, side, ok, ours, floor), views
 
 
 def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path, out: str | Path,
                  reference: str | None = None, synthetic_people_max: int = 400, flip: bool = False,
-                 sheet_count: int = 48) -> dict[str, Any]:
-    """The whole check (module docstring); returns the report written to ``OUT/report.json``."""
+                 sheet_count: int = 48, antialias: bool = True) -> dict[str, Any]:
+    """The whole check (module docstring); returns the report written to ``OUT/report.json``.
+    ``antialias``: the crops' prefilter (:func:`predict_joints`)."""
     from recovery.predictor import load_predictor
 
     out = Path(out)
@@ -485,14 +489,15 @@ def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path
     real_people = read_boxes(real)
     out.mkdir(parents=True, exist_ok=True)
     syn_people = synthetic_people(synthetic, out / "synthetic_images", synthetic_people_max)
-    d_real, v_real = score_domain("real", real_people, command, out, pr)
-    d_syn, v_syn = score_domain("synthetic", syn_people, command, out, pr)
+    d_real, v_real = score_domain("real", real_people, command, out, pr, antialias)
+    d_syn, v_syn = score_domain("synthetic", syn_people, command, out, pr, antialias)
     d_real.synthetic_floor = mean_pose_floor(d_real.ref, d_real.vis, d_real.centre, d_real.side, d_real.ok,
                                              median_pose(d_syn.ref, d_syn.vis, d_syn.centre, d_syn.side, d_syn.ok))
     rep = summarise(d_real, d_syn)
     cache = json.loads((out / "reference.json").read_text())
     rep.update(checkpoint=str(checkpoint), real=str(real), synthetic=str(synthetic), flip_test=flip,
-               reference=sorted({v["reference"] for v in cache.values()}), command=" ".join(sys.argv))
+               reference=sorted({v["reference"] for v in cache.values()}), command=" ".join(sys.argv),
+               antialias=antialias)
     faces = pr.body.faces.numpy()
     contact_sheet(d_real, v_real, faces, out / "sheet_real.png", sheet_count)
     contact_sheet(d_syn, v_syn, faces, out / "sheet_synthetic.png", sheet_count)

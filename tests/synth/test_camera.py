@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from synth.camera import CameraConfig, outline_index, sample_camera
+from synth.camera import CameraConfig, facing_yaw_deg, outline_index, sample_camera
 from synth.shards import sample_rng
 
 
@@ -82,6 +82,35 @@ def test_same_seed_same_camera_and_bad_config(person):
         CameraConfig(truncation_rate=1.5)
     with pytest.raises(ValueError, match="points"):
         sample_camera(np.zeros((5, 2)), CameraConfig(), sample_rng(0, 0))
+
+
+def test_frontal_views_at_their_rate_about_the_facing_and_off_leaves_the_draws(person):
+    # Off (the default), the cameras are those of a config without the option, draw for draw.
+    for i in range(20):
+        a, ia = sample_camera(person, CameraConfig(), sample_rng(7, i))
+        b, ib = sample_camera(person, CameraConfig(frontal_rate=0.0, frontal_yaw_deg=(-10.0, 10.0)), sample_rng(7, i), facing_deg=70.0)
+        np.testing.assert_array_equal(a.R, b.R)
+        assert ia == ib
+    # On: about half of the yaws within 45 degrees of the facing (the rest uniform all around, a
+    # quarter of which also land there), and the camera then in front of a body facing that way.
+    cfg = CameraConfig(frontal_rate=0.5, rare_rate=0.0, truncation_rate=0.0)
+    n, front = 400, 0
+    for i in range(n):
+        cam, info = sample_camera(person, cfg, sample_rng(8, i), facing_deg=120.0)
+        d = (info["yaw_deg"] - 120.0 + 180.0) % 360.0 - 180.0
+        front += abs(d) <= 45.0
+        if abs(d) <= 45.0:
+            eye = -cam.R.T @ cam.t
+            centre = 0.5 * (person.min(0) + person.max(0))
+            f = np.array([np.sin(np.radians(120.0)), 0.0, np.cos(np.radians(120.0))])
+            assert f @ (eye - centre) > 0
+    assert abs(front / n - 0.625) < 0.07
+    assert facing_yaw_deg(np.zeros(3)) == 0.0
+    assert facing_yaw_deg(np.array([0.0, np.pi / 2, 0.0])) == pytest.approx(90.0)
+    with pytest.raises(ValueError, match="frontal_rate"):
+        CameraConfig(frontal_rate=1.5)
+    with pytest.raises(ValueError, match="frontal_yaw_deg"):
+        CameraConfig(frontal_yaw_deg=(30.0, -30.0))
 
 
 def test_the_hull_points_frame_the_person_exactly_as_all_vertices_do(person, monkeypatch):
