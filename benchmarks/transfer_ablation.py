@@ -65,6 +65,8 @@ ROWS = {  # name: (lever, data configs, recovery config)
                                         "the spread between runs of one recipe", ("garments_subjects",), "garments_effects_subjects_seed1"),
     "garments_effects_subjects_seed2": ("garments_effects_subjects again with train.seed 2", ("garments_subjects",),
                                         "garments_effects_subjects_seed2"),
+    "garments_effects_subjects_1202": ("garments_effects_subjects trained and scored again on 2026-12-02, with antialiased crops "
+                                       "(the frontal row's reference)", ("garments_subjects",), "garments_effects_subjects_1202"),
     "garments_effects_subjects_frontal": ("views as photographs show people: garments_effects_subjects with half of the cameras "
                                           "within 45 degrees of the first person's front (camera.frontal_rate 0.5)",
                                           ("garments_subjects_frontal",), "garments_effects_subjects_frontal"),
