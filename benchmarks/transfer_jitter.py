@@ -46,9 +46,7 @@ def main() -> int:
     out: dict[str, dict] = {}
     rng = np.random.default_rng(0)
     for name, people in domains.items():
-        ref = T.run_reference(people, command, args.check / "reference.json")
-        vis = T.visible_joints(ref, [p.size for p in people])
-        centre, side, ok = T.person_boxes(ref, vis)
+        ref, vis, centre, side, ok = T.reference_boxes(people, command, args.check / "reference.json")
         floor = T.mean_pose_floor(ref, vis, centre, side, ok)
         j = vis[ok].sum()
         pck_floor = T.hits(floor[ok], ref[ok], vis[ok], side[ok], 0.1).sum() / j

@@ -74,9 +74,7 @@ def main() -> int:
     hits: dict[str, dict[str, np.ndarray]] = {}
     setup = {}
     for name, people in domains.items():
-        ref = T.run_reference(people, command, cache)
-        vis = T.visible_joints(ref, [p.size for p in people])
-        centre, side, ok = T.person_boxes(ref, vis)
+        ref, vis, centre, side, ok = T.reference_boxes(people, command, cache)
         floor = T.mean_pose_floor(ref, vis, centre, side, ok)
         setup[name] = (people, ref, vis, centre, side, ok)
         hits[name] = {"joints": vis[ok].sum(1), "floor": T.hits(floor[ok], ref[ok], vis[ok], side[ok], 0.1)}

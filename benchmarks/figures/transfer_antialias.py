@@ -12,7 +12,6 @@ People are taken in order of shrink, largest first.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -34,9 +33,7 @@ def main() -> None:
     from synth.data import crop_affine, crop_shrink, warp_to_crop
 
     people = T.read_boxes(args.real)
-    ref = T.run_reference(people, T.reference_command(None), args.reference)  # cached there: nothing runs
-    vis = T.visible_joints(ref, [p.size for p in people])
-    centre, side, ok = T.person_boxes(ref, vis)
+    _, _, centre, side, ok = T.reference_boxes(people, T.reference_command(None), args.reference)  # cached: nothing runs
     idx = [int(i) for i in np.flatnonzero(ok)]
     affs = {i: crop_affine(tuple(centre[i]), float(side[i]) * T.CROP_SCALE, args.crop) for i in idx}
     idx = sorted(idx, key=lambda i: -crop_shrink(affs[i]))[: args.count]

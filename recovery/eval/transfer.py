@@ -462,15 +462,23 @@ def reference_command(spec: str | None) -> list[str]:
     return [str(python), str(REFERENCE_SCRIPT)]
 
 
+def reference_boxes(people: list[Person], command: list[str], cache_path: Path
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The reference's joints for ``people`` (:func:`run_reference`, answers cached at
+    ``cache_path``), the ones that count (:func:`visible_joints`) and the box rule's person boxes
+    (:func:`person_boxes`): ``(ref, vis, centre, side, ok)``."""
+    ref = run_reference(people, command, cache_path)
+    vis = visible_joints(ref, [p.size for p in people])
+    return (ref, vis, *person_boxes(ref, vis))
+
+
 def score_domain(name: str, people: list[Person], command: list[str], out: Path, pr: Any,
                  antialias: bool = True) -> tuple[Domain, list[dict[str, Any]]]:
     """One domain scored: the reference (answers cached in ``out/reference.json``), the box rule,
     the floor and predictor ``pr``'s joints; returns the :class:`Domain` and the sheet's views."""
     if not people:
         raise ValueError(f"{name}: no people to score")
-    ref = run_reference(people, command, out / "reference.json")
-    vis = visible_joints(ref, [p.size for p in people])
-    centre, side, ok = person_boxes(ref, vis)
+    ref, vis, centre, side, ok = reference_boxes(people, command, out / "reference.json")
     floor = mean_pose_floor(ref, vis, centre, side, ok)
     ours, views = predict_joints(pr, people, centre, side, ok, antialias=antialias)
     return Domain(name, people, ref, vis, centre, side, ok, ours, floor), views
