@@ -12,10 +12,13 @@ import sys
 USAGE = """\
 recovery train CONFIG --out DIR [--resume]        train (configs/recovery/*.yaml; '-' = defaults)
 recovery evaluate CHECKPOINT DATASET --out DIR [--flip]    metrics.json, sheet.png (CHECKPOINT may be 'default')
-recovery predict CHECKPOINT IMAGE --out DIR [--box X0 Y0 X1 Y1] [--focal F] [--flip]
+recovery predict CHECKPOINT PATH --out DIR [--focal F] [--flip] [--min-score S] [--detect-size N]
+                 [--every N] [--max-frames M]    every person of an image, folder or video (people.json)
+recovery predict CHECKPOINT IMAGE --out DIR (--box X0 Y0 X1 Y1 | --whole) [--focal F] [--flip]    one person
 recovery cache DATASET --out DIR [--crop N]       pre-crop a dataset for training (train does it itself)
 recovery export CHECKPOINT --out FILE [--full]    inference-only copy (float16 unless --full)
-recovery transfer CHECKPOINT --real DIR --synthetic DATASET --out DIR    real-photo transfer check (docs/transfer.md)
+recovery transfer CHECKPOINT --real DIR --synthetic DATASET --out DIR    real-photo transfer check (docs/transfer.md;
+                                                  CHECKPOINT movenet_lightning / movenet_thunder: MoveNet's own keypoints)
 """
 
 
@@ -37,11 +40,19 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--no-antialias", action="store_true", help="crop by bilinear sampling alone (as before 2026-12-02)")
     pr = sub.add_parser("predict")
     pr.add_argument("checkpoint")
-    pr.add_argument("image")
+    pr.add_argument("image", metavar="PATH", help="an image, a folder of images or a video")
     pr.add_argument("--out", required=True)
-    pr.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"))
+    one = pr.add_mutually_exclusive_group()
+    one.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
+                     help="predict this one person of a single image (params.json, mesh.obj, overlay.png)")
+    one.add_argument("--whole", action="store_true", help="one person, the whole image padded to a square as the "
+                     "crop (predict without --box before the detector)")
     pr.add_argument("--focal", type=float, help="focal length in pixels (default: the image's longer side)")
     pr.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
+    pr.add_argument("--min-score", type=float, help="the detector's person score threshold (default 0.25)")
+    pr.add_argument("--detect-size", type=int, help="the detector's input, longer side in pixels (default 256)")
+    pr.add_argument("--every", type=int, default=1, help="videos: every N-th frame")
+    pr.add_argument("--max-frames", type=int, default=0, help="videos: at most M frames (0: all)")
     c = sub.add_parser("cache")
     c.add_argument("dataset")
     c.add_argument("--out", required=True)
@@ -58,7 +69,8 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--out", required=True, help="run folder (one sub-folder per config)")
     a.add_argument("--docs", default="docs", help="where recovery_ablation.md goes (its JSON and figures under figures/)")
     r = sub.add_parser("transfer", help="real-photo transfer check against a reference 2D pose estimator (docs/transfer.md)")
-    r.add_argument("checkpoint")
+    r.add_argument("checkpoint", help="a checkpoint, 'default', or movenet_lightning / movenet_thunder (MoveNet's "
+                   "own 2D keypoints: the ceiling row)")
     r.add_argument("--real", required=True, help="folder of real images with boxes.json")
     r.add_argument("--synthetic", required=True, help="a synth dataset (the held-out test set)")
     r.add_argument("--out", required=True)
@@ -110,10 +122,21 @@ def _run(args: argparse.Namespace) -> int:
         print(f"wrote {args.out}/metrics.json and {args.out}/sheet.png")
         return 0
     if args.cmd == "predict":
-        from recovery.predict import predict
+        from pathlib import Path
 
-        predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal, flip=args.flip)
-        print(f"wrote {args.out}/params.json, mesh.obj, overlay.png")
+        from recovery.predict import VIDEO_SUFFIXES, predict, predict_people
+
+        if args.box or args.whole:
+            if Path(args.image).is_dir() or Path(args.image).suffix.lower() in VIDEO_SUFFIXES:
+                raise ValueError(f"{args.image}: --box and --whole predict one person of a single image")
+            predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal, flip=args.flip)
+            print(f"wrote {args.out}/params.json, mesh.obj, overlay.png")
+            return 0
+        doc = predict_people(args.checkpoint, args.image, args.out, args.focal, flip=args.flip, min_score=args.min_score,
+                             detect_size=args.detect_size, every=args.every, max_frames=args.max_frames)
+        people = sum(len(e["people"]) for e in doc["images"])
+        print(f"wrote {args.out}/people.json: {people} people in {len(doc['images'])} images, "
+              f"a mesh per person, an overlay per image")
         return 0
     if args.cmd == "cache":
         from recovery.datasets.cache import build_cache

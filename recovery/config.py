@@ -20,12 +20,15 @@ from blsm.io import read_yaml
 from recovery.datasets.meshes import MeshDataConfig
 from synth.data import AugmentConfig
 
-BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
+BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2",
+             "movenet_lightning", "movenet_thunder")
+HEAD_INPUTS = ("pooled", "keypoints", "keypoints+pooled")
 TASKS = ("hmr_blsm", "mesh", "autoencoder")
 # Settings added after the first checkpoints: stored (and compared on --resume) only when they differ
 # from their default, so that those checkpoints can still be resumed.
 LATER_SETTINGS = (("train", "sync_batchnorm"), ("data", "effects"), ("optim", "backbone_lr"), ("train", "frozen_bn"),
-                  ("train", "init"))
+                  ("train", "init"), ("model", "head_input"), ("model", "image_dropout"), ("model", "train_blocks"),
+                  ("model", "keypoint_width"))
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,18 @@ class ModelConfig:
         dropout: dropout after each FC layer (HMR: 0.5).
         num_shape: the leading shape coefficients regressed (the rest are 0).
         blsm_model: the BLSM model file ("" for the packaged one).
+        head_input: what reaches the regressor (:class:`recovery.models.hmr.HMRBLSM`): ``pooled``, the
+            backbone's globally pooled last map (HMR); ``keypoints``, MoveNet's own 2D keypoints and
+            confidences, encoded by an MLP (a lifting network); ``keypoints+pooled``, both, the pooled
+            features layer-normalised, projected to the keypoints' width and dropped per image with
+            probability ``image_dropout`` so that the keypoints stay the main evidence. The last two
+            need a MoveNet backbone.
+        image_dropout: with ``keypoints+pooled``, the probability of dropping an image's whole
+            pooled-feature input in training (rescaled like dropout).
+        train_blocks: which backbone weights train: -1 all; 0 none (the backbone is fixed and runs
+            without gradients); N > 0 (MoveNet only) the last N trunk blocks and everything after
+            them (the 1280-channel convolution, the pyramid, the heads).
+        keypoint_width: width of the keypoint encoder (and of the projected image features).
     """
 
     backbone: str = "efficientnet_lite0"
@@ -50,12 +65,25 @@ class ModelConfig:
     dropout: float = 0.5
     num_shape: int = 10
     blsm_model: str = ""
+    head_input: str = "pooled"
+    image_dropout: float = 0.0
+    train_blocks: int = -1
+    keypoint_width: int = 256
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
             raise ValueError(f"model.backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}")
         if self.ief_iterations < 0 or self.hidden < 1 or not 0 <= self.dropout < 1 or self.num_shape < 0:
             raise ValueError("model.ief_iterations and num_shape must be >= 0, hidden > 0, dropout in [0, 1)")
+        if self.head_input not in HEAD_INPUTS:
+            raise ValueError(f"model.head_input must be one of {', '.join(HEAD_INPUTS)}, got {self.head_input!r}")
+        movenet = self.backbone.startswith("movenet_")
+        if self.head_input != "pooled" and not movenet:
+            raise ValueError(f"model.head_input {self.head_input!r} needs a MoveNet backbone, got {self.backbone!r}")
+        if not 0 <= self.image_dropout < 1 or self.keypoint_width < 1 or self.train_blocks < -1:
+            raise ValueError("model.image_dropout must be in [0, 1), keypoint_width > 0, train_blocks >= -1")
+        if self.train_blocks > 0 and not movenet:
+            raise ValueError("model.train_blocks > 0 (the last N trunk blocks) is for MoveNet backbones; use -1 or 0")
 
 
 @dataclass(frozen=True)
@@ -401,6 +429,10 @@ class RecoveryConfig:
     def __post_init__(self) -> None:
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {', '.join(TASKS)}, got {self.task!r}")
+        m = self.model
+        if self.task != "hmr_blsm" and (m.head_input, m.image_dropout, m.train_blocks) != ("pooled", 0.0, -1):
+            raise ValueError(f"model.head_input, image_dropout and train_blocks are HMR-BLSM settings; task {self.task!r} "
+                             "does not use them")
         if self.began.enabled and self.task != "mesh":
             raise ValueError("began.enabled needs task: mesh")
         if self.began.pretrained and not self.mesh.autoencoder:
@@ -426,6 +458,9 @@ class RecoveryConfig:
         """SHA-256 (16 hex) of the settings that define the network's parameters (``model``; and
         ``mesh``'s architecture for the spiral networks)."""
         arch: Any = dataclasses.asdict(self.model)
+        for section, key in LATER_SETTINGS:  # a network described before these settings keeps its hash
+            if section == "model" and arch[key] == getattr(ModelConfig(), key):
+                arch.pop(key)
         if self.task != "hmr_blsm":
             m = self.mesh
             arch = {"task": self.task, "model": arch if self.task == "mesh" else None,

@@ -29,6 +29,11 @@ images' median pose (what knowing the box and the training data's typical pose i
 A 90 % interval comes from a bootstrap over people (both domains resampled). On the synthetic side
 the reference is also scored against the labels (how far the reference itself is from the truth).
 
+``CHECKPOINT`` may also be ``movenet_lightning`` or ``movenet_thunder``: MoveNet's own 2D keypoints
+(:class:`KeypointPredictor`, on the same crops at MoveNet's native size), scored the same way. No
+network trained on our data can read photographs better than the backbone it reads them with: this
+is the **ceiling row** of docs/transfer.md.
+
 Writes ``OUT/report.json``, ``OUT/report.md`` and ``OUT/sheet_real.png`` / ``OUT/sheet_synthetic.png``
 (each person's crop: the predicted mesh, the reference's joints in green, ours in red). Reference
 answers are cached in ``OUT/reference.json`` (by image content, box and reference command).
@@ -235,6 +240,28 @@ def hits(pred: np.ndarray, ref: np.ndarray, vis: np.ndarray, side: np.ndarray, a
     return correct(pred, ref, vis, side, alpha).sum(1)
 
 
+class KeypointPredictor:
+    """MoveNet's own 2D keypoints behind the predictor interface :func:`predict_joints` uses (the
+    ceiling row): ``crop`` is MoveNet's native input, ``keypoint_names`` its COCO order, and a call
+    returns the keypoints (graph decoding, :meth:`recovery.models.backbones.movenet.MoveNet.keypoints`)
+    in crop pixels, with no mesh."""
+
+    def __init__(self, name: str) -> None:
+        from recovery.models.backbones.movenet import COCO_KEYPOINTS, build_movenet
+
+        self.net = build_movenet(name).eval()
+        self.crop = self.net.input_size
+        self.keypoint_names = COCO_KEYPOINTS
+        self.path = name
+
+    @torch.no_grad()
+    def __call__(self, images: torch.Tensor, k_crop: torch.Tensor) -> Any:
+        from types import SimpleNamespace
+
+        kp = self.net.keypoints(self.net.run(self.net.normalize(images)))
+        return SimpleNamespace(keypoints_2d=kp[..., :2], vertices=None, transl=None)
+
+
 def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.ndarray, ok: np.ndarray,
                    batch: int = 32, antialias: bool = True) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(N, 17, 2) the joints of predictor ``pr`` (:func:`recovery.predictor.load_predictor`) in
@@ -244,7 +271,8 @@ def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.n
     from recovery.predict import read_image
     from synth.data import crop_affine, warp_to_crop
 
-    ids = [pr.body.keypoint_names.index(n) for n in COCO_NAMES]
+    names = list(getattr(pr, "keypoint_names", None) or pr.body.keypoint_names)
+    ids = [names.index(n) for n in COCO_NAMES]
     out = np.full((len(people), len(COCO_NAMES), 2), np.nan)
     views: list[dict[str, Any]] = []
     todo = [int(i) for i in np.flatnonzero(ok)]
@@ -272,7 +300,8 @@ def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.n
             inv = np.linalg.inv(affs[n])
             out[i] = uv[n] @ inv[:2, :2].T + inv[:2, 2]
             views.append({"person": i, "crop": (crops[n].permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
-                          "vertices": (res.vertices[n] + res.transl[n]).numpy(), "K_crop": ks[n].double().numpy(),
+                          "vertices": None if res.vertices is None else (res.vertices[n] + res.transl[n]).numpy(),
+                          "K_crop": ks[n].double().numpy(),
                           "affine": affs[n], "uv": uv[n]})
     return out, views
 
@@ -417,10 +446,11 @@ def format_report(rep: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray, path: Path, count: int = 48,
+def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray | None, path: Path, count: int = 48,
                   tile: int = 160) -> None:
     """A sheet of up to ``count`` people: the crop with the predicted mesh, the reference's joints
-    (green) and the network's (red), both with the COCO skeleton."""
+    (green) and the network's (red), both with the COCO skeleton (no mesh where ``faces`` or a view's
+    vertices are None)."""
     from PIL import Image, ImageDraw
 
     from recovery.utils.viz import overlay
@@ -433,7 +463,7 @@ def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray
     sheet = Image.new("RGB", (cols * tile, rows * tile), (32, 32, 32))
     for n, v in enumerate(views):
         crop = v["crop"]
-        img = overlay(crop, v["vertices"], faces, v["K_crop"], alpha=0.6)
+        img = crop if v["vertices"] is None or faces is None else overlay(crop, v["vertices"], faces, v["K_crop"], alpha=0.6)
         im = Image.fromarray(img).resize((tile, tile), Image.BILINEAR)
         draw = ImageDraw.Draw(im)
         sc = tile / crop.shape[0]
@@ -493,7 +523,14 @@ def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path
 
     out = Path(out)
     command = reference_command(reference)
-    pr = load_predictor(checkpoint).use_flip(flip)  # a bad checkpoint stops the run before any work
+    from recovery.models.backbones.movenet import VARIANTS as MOVENET
+
+    if str(checkpoint) in MOVENET:  # the ceiling row: MoveNet's own keypoints
+        if flip:
+            raise ValueError(f"{checkpoint}: --flip averages HMR-BLSM parameters; MoveNet's keypoints have none")
+        pr: Any = KeypointPredictor(str(checkpoint))
+    else:
+        pr = load_predictor(checkpoint).use_flip(flip)  # a bad checkpoint stops the run before any work
     real_people = read_boxes(real)
     out.mkdir(parents=True, exist_ok=True)
     syn_people = synthetic_people(synthetic, out / "synthetic_images", synthetic_people_max)
@@ -506,7 +543,7 @@ def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path
     rep.update(checkpoint=str(checkpoint), real=str(real), synthetic=str(synthetic), flip_test=flip,
                reference=sorted({v["reference"] for v in cache.values()}), command=" ".join(sys.argv),
                antialias=antialias)
-    faces = pr.body.faces.numpy()
+    faces = pr.body.faces.numpy() if hasattr(pr, "body") else None
     contact_sheet(d_real, v_real, faces, out / "sheet_real.png", sheet_count)
     contact_sheet(d_syn, v_syn, faces, out / "sheet_synthetic.png", sheet_count)
     with atomic_write(out / "report.json", "w") as fh:

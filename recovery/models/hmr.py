@@ -1,7 +1,10 @@
 """HMR-BLSM: HMR's regressor (Kanazawa et al. 2018) with its SMPL head replaced by BLSM (thesis
 Sec. 6.4.3).
 
-Pooled backbone features -> iterative error feedback (:mod:`recovery.models.heads`): starting from
+Image evidence (``head_input``): the backbone's pooled features (HMR), or, on a MoveNet backbone,
+MoveNet's own 2D keypoints and confidences through :class:`KeypointEncoder` (a lifting network, as
+keypoint-conditioned regressors do), optionally with the pooled features as a secondary input ->
+iterative error feedback (:mod:`recovery.models.heads`): starting from
 the mean parameters ``Theta_0``, each of ``ief_iterations`` steps regresses a correction from
 ``[features, Theta_t]`` through two FC layers of ``hidden`` units with ReLU and dropout,
 ``Theta_{t+1} = Theta_t + dTheta``, ``Theta`` laid out by :class:`recovery.models.heads.ParamLayout`.
@@ -17,7 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from recovery.models.backbones import build_backbone
+from recovery.models.backbones import MoveNet, build_backbone
 from recovery.models.heads import IEFRegressor, ParamLayout
 from recovery.utils.geometry import cam_to_translation, project, rot6d_to_matrix
 
@@ -47,6 +50,40 @@ class HMROutput:
         return HMROutput(**{k: v.float() for k, v in vars(self).items()})
 
 
+class KeypointEncoder(nn.Module):
+    """MoveNet's 17 keypoints ``(x, y, score)`` (and optionally pooled image features) -> one vector.
+
+    The keypoints are given in crop pixels and mapped to [-1, 1] (``2 u / S - 1``); with the scores
+    they pass two fully connected layers of ``width`` with ReLU. Image features, when given, are
+    layer-normalised, projected to ``width`` with ReLU, and in training dropped per image with
+    probability ``image_dropout`` (the survivors rescaled by ``1 / (1 - p)``, as dropout does), so the
+    regressor cannot lean on appearance alone; the output is the concatenation.
+    """
+
+    def __init__(self, num_keypoints: int, width: int = 256, image_features: int = 0, image_dropout: float = 0.0) -> None:
+        super().__init__()
+        self.keypoints = nn.Sequential(nn.Linear(3 * num_keypoints, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU())
+        self.image = None
+        if image_features:
+            self.image = nn.Sequential(nn.LayerNorm(image_features), nn.Linear(image_features, width), nn.ReLU())
+        self.image_dropout = float(image_dropout)
+        self.out_features = width * (2 if image_features else 1)
+
+    def forward(self, keypoints: torch.Tensor, size: float, image: torch.Tensor | None = None) -> torch.Tensor:
+        """keypoints (B, K, 3) in pixels of an S = ``size`` crop; image (B, C) or None -> (B, out_features)."""
+        xy = keypoints[..., :2] * (2.0 / size) - 1.0
+        x = self.keypoints(torch.cat([xy, keypoints[..., 2:]], -1).flatten(1))
+        if self.image is None:
+            return x
+        if image is None:
+            raise ValueError("this encoder was built with image features; pass them")
+        f = self.image(image)
+        if self.training and self.image_dropout > 0:
+            keep = (torch.rand(f.shape[0], 1, device=f.device) >= self.image_dropout).to(f.dtype)
+            f = f * keep / (1.0 - self.image_dropout)
+        return torch.cat([x, f], -1)
+
+
 class HMRBLSM(nn.Module):
     """Backbone + IEF regressor of BLSM parameters (module docstring).
 
@@ -55,23 +92,70 @@ class HMRBLSM(nn.Module):
         layout: the parameter layout (the BLSM model's DoF and bone counts, ``num_shape``).
         num_model_shape: the model's shape coefficient count Ks (the output is padded with zeros).
         init: (P,) mean parameters ``Theta_0`` (:func:`recovery.models.heads.mean_theta`).
-        pretrained: load the backbone's ImageNet weights.
+        pretrained: load the backbone's pretrained weights (ImageNet; MoveNet's own).
         hidden, dropout, iterations: the regressor (HMR: 1024, 0.5, 3).
+        head_input: ``pooled``, ``keypoints`` or ``keypoints+pooled`` (:class:`recovery.config.ModelConfig`).
+        image_dropout, keypoint_width: the :class:`KeypointEncoder`'s.
+        train_blocks: -1 every backbone weight trains; 0 none (the backbone runs without gradients);
+            N > 0 (MoveNet) the last N trunk blocks and what follows them.
     """
 
     def __init__(self, backbone: str, layout: ParamLayout, num_model_shape: int, init: torch.Tensor,
-                 pretrained: bool = False, hidden: int = 1024, dropout: float = 0.5, iterations: int = 3) -> None:
+                 pretrained: bool = False, hidden: int = 1024, dropout: float = 0.5, iterations: int = 3,
+                 head_input: str = "pooled", image_dropout: float = 0.0, keypoint_width: int = 256,
+                 train_blocks: int = -1) -> None:
         super().__init__()
         if init.shape != (layout.size,):
             raise ValueError(f"init must be ({layout.size},), got {tuple(init.shape)}")
         self.layout, self.num_model_shape = layout, int(num_model_shape)
         self.backbone = build_backbone(backbone, pretrained=pretrained)
-        self.regressor = IEFRegressor(self.backbone.out_channels, init, hidden, dropout, iterations)
+        self.head_input = head_input
+        self.encoder: KeypointEncoder | None = None
+        width = self.backbone.out_channels
+        if head_input != "pooled":
+            if not isinstance(self.backbone, MoveNet):
+                raise ValueError(f"head_input {head_input!r} needs a MoveNet backbone, got {backbone!r}")
+            image = self.backbone.out_channels if head_input == "keypoints+pooled" else 0
+            self.encoder = KeypointEncoder(17, keypoint_width, image, image_dropout)
+            width = self.encoder.out_features
+        self.regressor = IEFRegressor(width, init, hidden, dropout, iterations)
+        self.train_blocks = int(train_blocks)
+        self._freeze()
+
+    def _freeze(self) -> None:
+        if self.train_blocks < 0:
+            return
+        for p in self.backbone.parameters():
+            p.requires_grad_(False)
+        if self.train_blocks > 0:
+            if not isinstance(self.backbone, MoveNet):
+                raise ValueError("train_blocks > 0 needs a MoveNet backbone")
+            b = self.backbone
+            for m in (*b.blocks[len(b.blocks) - self.train_blocks:], b.head_conv, b.fpn_top, b.lateral16, b.lateral8,
+                      b.lateral4, b.smooth16, b.smooth8, b.smooth4, b.heads):
+                for p in m.parameters():
+                    p.requires_grad_(True)
+
+    def train(self, mode: bool = True) -> HMRBLSM:
+        super().train(mode)
+        if self.train_blocks == 0:
+            self.backbone.eval()  # a fixed backbone keeps its BatchNorm statistics
+        return self
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) RGB in [0, 1] -> the regressor's input (B, C)."""
+        x = self.backbone.normalize(images)
+        with torch.set_grad_enabled(torch.is_grad_enabled() and self.train_blocks != 0):
+            if self.encoder is None:
+                return self.backbone(x)
+            out = self.backbone.run(x)
+            kp = self.backbone.keypoints(out, soft=True)
+            pooled = out.c32.mean(dim=(2, 3)) if self.encoder.image is not None else None
+        return self.encoder(kp, float(images.shape[-1]), pooled)
 
     def forward(self, images: torch.Tensor) -> HMROutput:
         """Args: images (B, 3, H, W) RGB in [0, 1] (normalised here). Returns :class:`HMROutput`."""
-        thetas = self.regressor(self.backbone(self.backbone.normalize(images)))
-        return self.decode(thetas)
+        return self.decode(self.regressor(self.features(images)))
 
     def decode(self, thetas: torch.Tensor) -> HMROutput:
         p = self.layout.split(thetas[-1])

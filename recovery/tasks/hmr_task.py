@@ -59,7 +59,8 @@ def build_model(cfg: RecoveryConfig, body: nn.Module, init: torch.Tensor | None 
     if init is None:
         init = torch.zeros(layout.size)
     return HMRBLSM(m.backbone, layout, body.num_shape_coeffs, init, pretrained=m.pretrained if pretrained is None else pretrained,
-                   hidden=m.hidden, dropout=m.dropout, iterations=m.ief_iterations)
+                   hidden=m.hidden, dropout=m.dropout, iterations=m.ief_iterations, head_input=m.head_input,
+                   image_dropout=m.image_dropout, keypoint_width=m.keypoint_width, train_blocks=m.train_blocks)
 
 
 class HMRTask:

@@ -284,3 +284,46 @@ def test_gpu_carry_round_trip(tmp_path, model, fake_root):
         assert sorted(la.files) == sorted(lb.files) and all(np.array_equal(la[k], lb[k]) for k in la.files)
         ia, ib = np.load(a / "images.npy").astype(float), np.load(b / "images.npy").astype(float)
         assert ia.shape == ib.shape and np.abs(ia - ib).mean() < 3.0, (p, np.abs(ia - ib).mean())
+
+
+# The reference of the ceiling test: on astronaut.png, MoveNet Lightning's own keypoints on the whole
+# photograph (tests/recovery/test_movenet.py's stored values, scaled to 512 px) as BlazePose landmarks;
+# on every other image the stick figure of FAKE_REFERENCE.
+CEILING_REFERENCE = FAKE_REFERENCE.replace('''    x0, y0, x1, y1 = it["box"]''', '''    x0, y0, x1, y1 = it["box"]
+    if it["image"].endswith("astronaut.png"):
+        items.append({"landmarks": json.loads(Path(__file__).with_name("astronaut.json").read_text())})
+        continue''')
+
+
+def test_ceiling_row_scores_movenet_itself(fake_root, tmp_path, capsys):
+    """``recovery transfer movenet_lightning``: MoveNet's keypoints, cropped by the box rule and mapped
+    back into the photograph, agree with MoveNet's keypoints on the whole photograph."""
+    skimage_data = pytest.importorskip("skimage.data")
+    from test_movenet import ASTRONAUT
+
+    from recovery.models.backbones.movenet import COCO_KEYPOINTS
+
+    real = tmp_path / "real"
+    real.mkdir()
+    Image.fromarray(skimage_data.astronaut()).save(real / "astronaut.png")
+    (real / "boxes.json").write_text(json.dumps({"astronaut.png": [[20, 20, 400, 510]]}))
+    d = tmp_path / "ref"
+    d.mkdir()
+    (d / "template.json").write_text(json.dumps(_template()))
+    lms = [[0.0, 0.0, 0.0] for _ in range(33)]
+    for name, m in zip(COCO_NAMES, MEDIAPIPE_INDEX, strict=True):
+        x, y, s = ASTRONAUT["movenet_lightning"][COCO_KEYPOINTS.index(name)]
+        lms[m] = [x * 512 / 192, y * 512 / 192, 0.9 if s > 0.3 else 0.1]
+    (d / "astronaut.json").write_text(json.dumps(lms))
+    (d / "ref.py").write_text(CEILING_REFERENCE)
+    out = tmp_path / "out"
+    assert cli.main(["transfer", "movenet_lightning", "--real", str(real), "--synthetic", str(fake_root), "--out", str(out),
+                     "--reference-command", f"{sys.executable} {d / 'ref.py'}", "--synthetic-people", "3"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    r = rep["domains"]["real"]
+    assert r["scored"] == 1 and r["joints"] >= 9
+    assert r["pck@0.1"]["ours"] == 1.0  # the same network on a crop of the same photograph
+    assert (out / "sheet_real.png").is_file() and (out / "sheet_synthetic.png").is_file()
+    assert cli.main(["transfer", "movenet_lightning", "--real", str(real), "--synthetic", str(fake_root), "--out", str(out),
+                     "--reference-command", f"{sys.executable} {d / 'ref.py'}", "--flip"]) == 2
+    assert "--flip" in capsys.readouterr().err

