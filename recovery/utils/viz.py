@@ -89,3 +89,53 @@ def side_view(meshes: list[tuple[np.ndarray, tuple[float, float, float]]], faces
         out[nearer] = rgb[nearer]
         depth[nearer] = d[nearer]
     return (out * 255 + 0.5).clip(0, 255).astype(np.uint8)
+
+
+PERSON_COLORS = np.array([[0.95, 0.55, 0.25], [0.35, 0.65, 0.95], [0.45, 0.85, 0.45], [0.9, 0.4, 0.75],
+                          [0.95, 0.85, 0.3], [0.55, 0.45, 0.9], [0.3, 0.85, 0.85], [0.85, 0.35, 0.35]])
+"""RGB in [0, 1], one per person of a multi-person overlay (cycled)."""
+
+
+def people_overlay(image: np.ndarray, meshes: list[np.ndarray], faces: np.ndarray, K: np.ndarray,
+                   alpha: float = 0.7, colors: np.ndarray = PERSON_COLORS) -> np.ndarray:
+    """Every mesh over ``image``, each in its colour (``colors[i % len]``), depth-ordered per pixel: a
+    nearer person hides a farther one (one z-buffer across the meshes).
+
+    Args:
+        image: (H, W, 3) uint8.
+        meshes: each (V, 3) camera-frame vertices, metres.
+        faces: (F, 3) shared by the meshes.
+        K: (3, 3) the image's intrinsics.
+
+    Returns:
+        (H, W, 3) uint8.
+    """
+    h, w = image.shape[:2]
+    rgb = np.zeros((h, w, 3))
+    depth = np.full((h, w), np.inf)
+    for i, verts in enumerate(meshes):
+        col, mask, d = shade(verts, faces, K, w, h, colors[i % len(colors)])
+        nearer = mask & (d < depth)
+        rgb[nearer] = col[nearer]
+        depth[nearer] = d[nearer]
+    out = image.astype(np.float64) / 255.0
+    hit = np.isfinite(depth)
+    out[hit] = (1 - alpha) * out[hit] + alpha * rgb[hit]
+    return (out * 255 + 0.5).clip(0, 255).astype(np.uint8)
+
+
+def draw_boxes(image: np.ndarray, boxes: list[np.ndarray], colors: np.ndarray = PERSON_COLORS,
+               width: int = 2) -> np.ndarray:
+    """``image`` (H, W, 3) uint8 with each ``x0, y0, x1, y1`` box (pixels) outlined in its colour."""
+    out = image.copy()
+    h, w = out.shape[:2]
+    for i, b in enumerate(boxes):
+        c = (np.asarray(colors[i % len(colors)]) * 255 + 0.5).astype(np.uint8)
+        x0, y0 = int(np.clip(np.floor(b[0]), 0, w - 1)), int(np.clip(np.floor(b[1]), 0, h - 1))
+        x1, y1 = int(np.clip(np.ceil(b[2]) - 1, x0, w - 1)), int(np.clip(np.ceil(b[3]) - 1, y0, h - 1))
+        t = max(1, min(width, (x1 - x0 + 1) // 2, (y1 - y0 + 1) // 2))
+        out[y0:y0 + t, x0:x1 + 1] = c
+        out[y1 - t + 1:y1 + 1, x0:x1 + 1] = c
+        out[y0:y1 + 1, x0:x0 + t] = c
+        out[y0:y1 + 1, x1 - t + 1:x1 + 1] = c
+    return out

@@ -83,7 +83,7 @@ def _config(run_a: Path) -> Path:
 
 def test_predict_writes_parameters_mesh_and_overlay(run_a, image, model, tmp_path, capsys):
     out = tmp_path / "pred"
-    assert main(["predict", str(run_a / "last.pt"), str(image), "--out", str(out)]) == 0
+    assert main(["predict", str(run_a / "last.pt"), str(image), "--out", str(out), "--whole"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["mesh.obj", "overlay.png", "params.json"]
     p = json.loads((out / "params.json").read_text())
     angles = torch.tensor(p["angles"])
@@ -149,6 +149,11 @@ def test_predict_bad_image(run_a, tmp_path, capsys):
     _error(
         capsys,
         ["predict", str(run_a / "last.pt"), str(tmp_path / "no.png"), "--out", str(tmp_path / "o")],
+        f"{tmp_path / 'no.png'}: no such image",
+    )
+    _error(
+        capsys,
+        ["predict", str(run_a / "last.pt"), str(tmp_path / "no.png"), "--out", str(tmp_path / "o"), "--whole"],
         f"{tmp_path / 'no.png'}: no such image",
     )
     bad = tmp_path / "bad.png"
@@ -344,7 +349,7 @@ def test_export_predicts_like_the_run(run_a, image, tmp_path, capsys):
     assert main(["export", str(run_a / "last.pt"), "--out", str(exported)]) == 0
     assert exported.stat().st_size < 0.5 * (run_a / "last.pt").stat().st_size  # float16, no optimiser state
     for ck, out in ((run_a / "last.pt", tmp_path / "full"), (exported, tmp_path / "half")):
-        assert main(["predict", str(ck), str(image), "--out", str(out)]) == 0
+        assert main(["predict", str(ck), str(image), "--out", str(out), "--whole"]) == 0
     full, half = (json.loads((tmp_path / d / "params.json").read_text()) for d in ("full", "half"))
     assert np.allclose(full["angles"], half["angles"], atol=1e-2)
     assert np.allclose(full["transl"], half["transl"], rtol=1e-2)
