@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-ablation recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -38,6 +38,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_synth.py --out docs/benchmarks.md
 	test -f out/data/val/manifest.json || $(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/python benchmarks/bench_recovery.py --dataset out/data/val --out docs/benchmarks.md
+	$(BIN)/python benchmarks/bench_movenet_train.py --dataset out/data/val --out docs/benchmarks.md
 	$(BIN)/python benchmarks/bench_mesh.py --out docs/benchmarks.md
 	test -f out/motions/summary.csv || $(MAKE) motions
 	$(BIN)/python benchmarks/bench_video.py --frames 180 --set people.min=2 --set people.max=2 --out docs/benchmarks.md
@@ -45,6 +46,7 @@ bench: $(STAMP)
 	$(MAKE) transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
 	$(BIN)/recovery transfer default --real out/transfer_dev --synthetic out/data/test --out out/transfer/check_default
+	$(BIN)/recovery transfer movenet_lightning --real out/transfer_dev --synthetic out/data/test --out out/transfer/check_movenet_lightning
 	$(BIN)/python benchmarks/bench_realism.py --out docs/realism.md --noise configs/synth/preview/noise_hdri.yaml \
 		--scenes 12 --render multijitter:25 ldsampler:16 ldsampler:64 --ref-spp 1024 --rounds 5
 
@@ -143,6 +145,15 @@ recovery-model: $(STAMP)
 	$(BIN)/python benchmarks/transfer_soup.py --only wise_garments_effects_subjects --no-score
 	$(BIN)/recovery evaluate out/transfer/soups/wise_garments_effects_subjects.pt out/data/test --out out/eval/hmr_blsm_default
 	$(BIN)/recovery export out/transfer/soups/wise_garments_effects_subjects.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_default/metrics.json
+
+# The training data of HMR-BLSM on MoveNet (configs/recovery/movenet, docs/transfer.md): the validation set,
+# train_hdri.yaml (the current defaults) cut to 3000 images of 48 subjects and the garments-and-postures
+# data (seated people, arms over their range) cut to 1200 images of 48 subjects (about 45 minutes on 2 cores;
+# resumable).
+movenet-data: $(STAMP)
+	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
+	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/movenet/data/train_hdri --workers 2 --resume --num 3000 --set subjects.count=48
+	$(BIN)/synth generate configs/synth/transfer/garments_postures.yaml --out out/movenet/data/garments_postures --workers 2 --resume --num 1200 --set subjects.count=48
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
 # Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on

@@ -36,10 +36,9 @@ def main() -> int:
     import torch
 
     from recovery.eval import transfer as T
-    from recovery.predictor import load_predictor
 
     torch.set_num_threads(2)
-    pr = load_predictor(args.checkpoint)
+    pr = T.scored_predictor(args.checkpoint)  # a checkpoint, or movenet_lightning / movenet_thunder (the ceiling)
     command = T.reference_command(None)
     domains = {"real": T.read_boxes(args.real),
                "synthetic": T.synthetic_people(args.synthetic, args.check / "synthetic_images", 400)}

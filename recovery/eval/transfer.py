@@ -514,23 +514,27 @@ def score_domain(name: str, people: list[Person], command: list[str], out: Path,
     return Domain(name, people, ref, vis, centre, side, ok, ours, floor), views
 
 
+def scored_predictor(checkpoint: str | Path, flip: bool = False) -> Any:
+    """What the check scores: :class:`KeypointPredictor` for ``movenet_lightning`` / ``movenet_thunder``
+    (the ceiling row), else the checkpoint's network (:func:`recovery.predictor.load_predictor`)."""
+    from recovery.models.backbones.movenet import VARIANTS as MOVENET
+    from recovery.predictor import load_predictor
+
+    if str(checkpoint) in MOVENET:
+        if flip:
+            raise ValueError(f"{checkpoint}: --flip averages HMR-BLSM parameters; MoveNet's keypoints have none")
+        return KeypointPredictor(str(checkpoint))
+    return load_predictor(checkpoint).use_flip(flip)
+
+
 def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path, out: str | Path,
                  reference: str | None = None, synthetic_people_max: int = 400, flip: bool = False,
                  sheet_count: int = 48, antialias: bool = True) -> dict[str, Any]:
     """The whole check (module docstring); returns the report written to ``OUT/report.json``.
     ``antialias``: the crops' prefilter (:func:`predict_joints`)."""
-    from recovery.predictor import load_predictor
-
     out = Path(out)
     command = reference_command(reference)
-    from recovery.models.backbones.movenet import VARIANTS as MOVENET
-
-    if str(checkpoint) in MOVENET:  # the ceiling row: MoveNet's own keypoints
-        if flip:
-            raise ValueError(f"{checkpoint}: --flip averages HMR-BLSM parameters; MoveNet's keypoints have none")
-        pr: Any = KeypointPredictor(str(checkpoint))
-    else:
-        pr = load_predictor(checkpoint).use_flip(flip)  # a bad checkpoint stops the run before any work
+    pr = scored_predictor(checkpoint, flip)  # a bad checkpoint stops the run before any work
     real_people = read_boxes(real)
     out.mkdir(parents=True, exist_ok=True)
     syn_people = synthetic_people(synthetic, out / "synthetic_images", synthetic_people_max)
