@@ -45,12 +45,12 @@ def _parser() -> argparse.ArgumentParser:
     one = pr.add_mutually_exclusive_group()
     one.add_argument("--box", type=float, nargs=4, metavar=("X0", "Y0", "X1", "Y1"),
                      help="predict this one person of a single image (params.json, mesh.obj, overlay.png)")
-    one.add_argument("--whole", action="store_true", help="one person, the whole image padded to a square as the "
-                     "crop (predict without --box before the detector)")
+    one.add_argument("--whole", action="store_true", help="one person, the whole image padded to a square "
+                     "as the crop (predict without --box before the detector)")
     pr.add_argument("--focal", type=float, help="focal length in pixels (default: the image's longer side)")
     pr.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
     pr.add_argument("--min-score", type=float, help="the detector's person score threshold (default 0.25)")
-    pr.add_argument("--detect-size", type=int, help="the detector's input, longer side in pixels (default 256)")
+    pr.add_argument("--detect-size", type=int, help="the detector's input, longer side, pixels (default 256)")
     pr.add_argument("--every", type=int, default=1, help="videos: every N-th frame")
     pr.add_argument("--max-frames", type=int, default=0, help="videos: at most M frames (0: all)")
     c = sub.add_parser("cache")
@@ -129,11 +129,13 @@ def _run(args: argparse.Namespace) -> int:
         if args.box or args.whole:
             if Path(args.image).is_dir() or Path(args.image).suffix.lower() in VIDEO_SUFFIXES:
                 raise ValueError(f"{args.image}: --box and --whole predict one person of a single image")
-            predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal, flip=args.flip)
+            predict(args.checkpoint, args.image, args.out, tuple(args.box) if args.box else None, args.focal,
+                    flip=args.flip)
             print(f"wrote {args.out}/params.json, mesh.obj, overlay.png")
             return 0
-        doc = predict_people(args.checkpoint, args.image, args.out, args.focal, flip=args.flip, min_score=args.min_score,
-                             detect_size=args.detect_size, every=args.every, max_frames=args.max_frames)
+        doc = predict_people(args.checkpoint, args.image, args.out, args.focal, flip=args.flip,
+                             min_score=args.min_score, detect_size=args.detect_size, every=args.every,
+                             max_frames=args.max_frames)
         people = sum(len(e["people"]) for e in doc["images"])
         print(f"wrote {args.out}/people.json: {people} people in {len(doc['images'])} images, "
               f"a mesh per person, an overlay per image")
