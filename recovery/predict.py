@@ -384,7 +384,7 @@ def predict_people(checkpoint: str | Path, path: str | Path, out: str | Path, fo
                     })
             else:
                 entry["note"] = "no person found"
-                log(f"{path if src.kind == 'image' else name}: no person found")
+                log(f"{path if src.kind == 'image' else key.get('image', name)}: no person found")
             panel = np.concatenate([draw_boxes(image, [d.box for d in found]),
                                     people_overlay(image, meshes, faces, k)], 1)
             write_png(stage.dir / entry["overlay"], panel)
