@@ -32,13 +32,14 @@ def main() -> int:
     ap.add_argument("--draws", type=int, default=8)
     ap.add_argument("--no-antialias", action="store_true")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--fit", type=int, help="the test-time fit's iterations (default: the checkpoint's own)")
     args = ap.parse_args()
     import torch
 
     from recovery.eval import transfer as T
 
     torch.set_num_threads(2)
-    pr = T.scored_predictor(args.checkpoint)  # a checkpoint, or movenet_lightning / movenet_thunder (the ceiling)
+    pr = T.scored_predictor(args.checkpoint, fit=args.fit)  # a checkpoint, or movenet_lightning / movenet_thunder (the ceiling)
     command = T.reference_command(None)
     domains = {"real": T.read_boxes(args.real),
                "synthetic": T.synthetic_people(args.synthetic, args.check / "synthetic_images", 400)}

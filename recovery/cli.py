@@ -38,6 +38,8 @@ def _parser() -> argparse.ArgumentParser:
     e.add_argument("--batch", type=int, default=32)
     e.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation (average with the mirrored crop)")
     e.add_argument("--no-antialias", action="store_true", help="crop by bilinear sampling alone (as before 2026-12-02)")
+    e.add_argument("--fit", type=int, help="HMR-BLSM on MoveNet keypoints: the test-time fit's iterations "
+                   "(default: the checkpoint's own; 0: off)")
     pr = sub.add_parser("predict")
     pr.add_argument("checkpoint")
     pr.add_argument("image", metavar="PATH", help="an image, a folder of images or a video")
@@ -63,6 +65,8 @@ def _parser() -> argparse.ArgumentParser:
     x.add_argument("--out", required=True)
     x.add_argument("--full", action="store_true", help="keep float32 weights")
     x.add_argument("--report", help="a metrics.json to embed as the model's summary")
+    x.add_argument("--fit", type=int, default=0, help="the test-time fit's iterations its users get by default "
+                   "(HMR-BLSM on MoveNet keypoints; 0: none)")
     a = sub.add_parser("ablation", help="thesis Table 4.3 on our data: autoencoder vs PCA, Configs A-F (resumable)")
     a.add_argument("configs", help="folder with autoencoder.yaml and A.yaml ... F.yaml")
     a.add_argument("--test", required=True, help="the test dataset folder")
@@ -79,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
                    "(default: blsm/pose2d/mediapipe_pose.py in .venv-reference)")
     r.add_argument("--sheet", type=int, default=48, help="people on each overlay sheet")
     r.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
+    r.add_argument("--fit", type=int, help="HMR-BLSM on MoveNet keypoints: the test-time fit's iterations "
+                   "(default: the checkpoint's own; 0: off)")
     r.add_argument("--no-antialias", action="store_true", help="crop by bilinear sampling alone, without the "
                    "prefilter of a shrinking crop (the check before 2026-12-02)")
     return p
@@ -117,7 +123,7 @@ def _run(args: argparse.Namespace) -> int:
         if args.max_people < 0 or args.batch < 1:
             raise ValueError("--max-people must be >= 0 and --batch >= 1")
         res = evaluate(args.checkpoint, args.dataset, args.out, batch=args.batch, max_people=args.max_people, flip=args.flip,
-                       antialias=not args.no_antialias)
+                       antialias=not args.no_antialias, fit=args.fit)
         print(format_report(res))
         print(f"wrote {args.out}/metrics.json and {args.out}/sheet.png")
         return 0
@@ -152,7 +158,7 @@ def _run(args: argparse.Namespace) -> int:
         from recovery.predictor import export
 
         summary = json.loads(Path(args.report).read_text()) if args.report else None
-        path = export(args.checkpoint, args.out, half=not args.full, summary=summary)
+        path = export(args.checkpoint, args.out, half=not args.full, summary=summary, fit=args.fit)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")
         return 0
     if args.cmd == "ablation":
@@ -172,7 +178,7 @@ def _run(args: argparse.Namespace) -> int:
             raise ValueError("--synthetic-people must be >= 1 and --sheet >= 0")
         rep = run_transfer(args.checkpoint, args.real, args.synthetic, args.out, args.reference_command,
                            args.synthetic_people, flip=args.flip, sheet_count=args.sheet,
-                           antialias=not args.no_antialias)
+                           antialias=not args.no_antialias, fit=args.fit)
         print(format_report(rep))
         print(f"wrote {args.out}/report.json, report.md, sheet_real.png, sheet_synthetic.png")
         return 0

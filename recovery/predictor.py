@@ -69,6 +69,7 @@ class Predictor:
     info: dict[str, Any]
     regressor: torch.Tensor | None = None  # (K, V) keypoints from vertices (mesh network)
     flip: bool = False  # HMR-BLSM: average with the mirrored prediction on the flipped crop
+    fit: Any = None  # HMR-BLSM on MoveNet keypoints: recovery.models.fit2d.FitSettings, the test-time fit
 
     @property
     def crop(self) -> int:
@@ -92,6 +93,20 @@ class Predictor:
         self.flip = flip
         return self
 
+    def use_fit(self, iterations: int) -> Predictor:
+        """Fit each prediction to the network's own MoveNet keypoints for ``iterations`` steps
+        (:func:`recovery.models.fit2d.fit_to_keypoints`; 0: off). Needs a checkpoint whose regressor
+        reads MoveNet keypoints (``model.head_input`` keypoints or keypoints+pooled)."""
+        from recovery.models.fit2d import FitSettings
+
+        if iterations < 0:
+            raise ValueError(f"--fit must be >= 0, got {iterations}")
+        if iterations and (self.task != "hmr_blsm" or getattr(self.model, "encoder", None) is None):
+            raise ValueError(f"{self.path}: --fit fits to the network's MoveNet keypoints; this checkpoint reads none "
+                             "(model.head_input pooled, or not HMR-BLSM)")
+        self.fit = FitSettings(iterations=iterations) if iterations else None
+        return self
+
     def _pelvis(self) -> int:
         return self.body.keypoint_names.index("pelvis")
 
@@ -101,15 +116,22 @@ class Predictor:
         dev = next(self.model.parameters()).device
         k_crop = k_crop.to(dev)
         images = images.to(dev)
-        out = self.model(images)
         if self.task == "hmr_blsm":
+            out, kp = self.model.forward_keypoints(images)
             if self.flip:
                 out = flip_average(self.body, out, self.model(images.flip(-1)))
+            if self.fit is not None:
+                from recovery.models.backbones.movenet import COCO_KEYPOINTS
+                from recovery.models.fit2d import fit_to_keypoints
+
+                ids = [self.body.keypoint_names.index(n) for n in COCO_KEYPOINTS]
+                out = fit_to_keypoints(self.body, out, k_crop, self.crop, kp, ids, self.fit)
             b = predict_body(self.body, out, k_crop, self.crop)
             rest = self.body(pose=out.pose, bone=out.bone, shape=out.shape)
             return Prediction(vertices=b.vertices, keypoints_3d=b.keypoints_3d, transl=b.transl,
                               keypoints_2d=b.keypoints_2d, body_vertices=rest.vertices - rest.joints[:, :1],
                               params=out, pose=out.pose)
+        out = self.model(images)
         kp = torch.einsum("kv,bvc->bkc", self.regressor, out.vertices)
         pelvis = kp[:, self._pelvis(): self._pelvis() + 1]
         v, kp = out.vertices - pelvis, kp - pelvis
@@ -162,13 +184,17 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
         raise ValueError(f"{path}: weights do not fit the network of its config ({str(exc).splitlines()[0][:160]})") from None
     model.backbone.use_channels_last(cfg.train.channels_last)
     model.eval()
-    info = {k: ck.get(k) for k in ("step", "saved", "best", "train_summary")}
-    return Predictor(model=model, body=body, config=cfg, path=path, info=info, regressor=regressor)
+    info = {k: ck.get(k) for k in ("step", "saved", "best", "train_summary", "inference")}
+    pr = Predictor(model=model, body=body, config=cfg, path=path, info=info, regressor=regressor)
+    inference = ck.get("inference") or {}  # what an exported checkpoint asks of inference (recovery export --fit)
+    return pr.use_fit(int(inference.get("fit", 0)))
 
 
-def export(src: str | Path, dst: str | Path, half: bool = True, summary: dict[str, Any] | None = None) -> Path:
+def export(src: str | Path, dst: str | Path, half: bool = True, summary: dict[str, Any] | None = None,
+           fit: int = 0) -> Path:
     """Write an inference-only copy of a run's checkpoint (the network's weights, float16 when
-    ``half``, its config and model hash; no optimiser or discriminator state)."""
+    ``half``, its config and model hash; no optimiser or discriminator state). ``fit``: the test-time
+    fit's iterations that :func:`load_predictor` applies by default (``inference.fit``; 0: none)."""
     src, dst = Path(src), Path(dst)
     ck = read_checkpoint(src)
     weights = {k: (v.half() if half and v.is_floating_point() else v) for k, v in ck["modules"]["model"].items()}
@@ -178,5 +204,9 @@ def export(src: str | Path, dst: str | Path, half: bool = True, summary: dict[st
         "step": ck["step"], "best": ck.get("best"), "saved": ck.get("saved"), "source": str(src),
         "modules": {"model": weights}, "train_summary": summary or {},
     }
+    if fit:
+        if ck["task"] != "hmr_blsm" or ck["config"].get("model", {}).get("head_input", "pooled") == "pooled":
+            raise ValueError(f"{src}: --fit needs an HMR-BLSM checkpoint whose regressor reads MoveNet keypoints")
+        out["inference"] = {"fit": int(fit)}
     save_atomic(out, dst)
     return dst

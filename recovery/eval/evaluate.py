@@ -207,16 +207,19 @@ PER_PERSON = ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm")
 
 
 def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch: int = 32, max_people: int = 0,
-             log: Any = print, flip: bool = False, antialias: bool = True) -> dict[str, Any]:
+             log: Any = print, flip: bool = False, antialias: bool = True, fit: int | None = None) -> dict[str, Any]:
     """Evaluate a checkpoint on a dataset folder; writes ``metrics.json``, ``people.npz`` (each
     person's errors, :data:`PER_PERSON`) and ``sheet.png`` into ``out``.
 
     ``flip``: HMR-BLSM with flip test-time augmentation (:func:`recovery.models.hmr.flip_average`);
     recorded as ``flip_test`` in the metrics. ``antialias``: the crops' prefilter
-    (:class:`synth.data.SynthDataset`), recorded as ``antialias`` where off.
+    (:class:`synth.data.SynthDataset`), recorded as ``antialias`` where off. ``fit``: the test-time fit's
+    iterations (:meth:`recovery.predictor.Predictor.use_fit`; None: the checkpoint's own), recorded as ``fit``.
     """
     t0 = time.perf_counter()
     pr = load_predictor(checkpoint).use_flip(flip)
+    if fit is not None:
+        pr.use_fit(fit)
     ds = SynthDataset(dataset, crop=pr.crop, augment=None, box_scale=1.2, antialias=antialias)
     if list(ds.keypoint_names) != list(pr.body.keypoint_names):
         raise ValueError(f"{dataset}: its keypoint_names are not the checkpoint's BLSM model's")
@@ -234,6 +237,7 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
             log(f"[evaluate] {done}/{n} people")
     res = results(scores, info, chosen, str(dataset), flip)
     res["seconds"] = round(time.perf_counter() - t0, 1)
+    res["fit"] = pr.fit.iterations if pr.fit is not None else 0
     if not antialias:
         res["antialias"] = False
     if seq_info is not None:

@@ -514,27 +514,31 @@ def score_domain(name: str, people: list[Person], command: list[str], out: Path,
     return Domain(name, people, ref, vis, centre, side, ok, ours, floor), views
 
 
-def scored_predictor(checkpoint: str | Path, flip: bool = False) -> Any:
+def scored_predictor(checkpoint: str | Path, flip: bool = False, fit: int | None = None) -> Any:
     """What the check scores: :class:`KeypointPredictor` for ``movenet_lightning`` / ``movenet_thunder``
-    (the ceiling row), else the checkpoint's network (:func:`recovery.predictor.load_predictor`)."""
+    (the ceiling row), else the checkpoint's network (:func:`recovery.predictor.load_predictor`), with the
+    test-time fit of ``fit`` iterations (None: the checkpoint's own setting)."""
     from recovery.models.backbones.movenet import VARIANTS as MOVENET
     from recovery.predictor import load_predictor
 
     if str(checkpoint) in MOVENET:
         if flip:
             raise ValueError(f"{checkpoint}: --flip averages HMR-BLSM parameters; MoveNet's keypoints have none")
+        if fit:
+            raise ValueError(f"{checkpoint}: --fit fits a body; MoveNet's keypoints have none")
         return KeypointPredictor(str(checkpoint))
-    return load_predictor(checkpoint).use_flip(flip)
+    pr = load_predictor(checkpoint).use_flip(flip)
+    return pr.use_fit(fit) if fit is not None else pr
 
 
 def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path, out: str | Path,
                  reference: str | None = None, synthetic_people_max: int = 400, flip: bool = False,
-                 sheet_count: int = 48, antialias: bool = True) -> dict[str, Any]:
+                 sheet_count: int = 48, antialias: bool = True, fit: int | None = None) -> dict[str, Any]:
     """The whole check (module docstring); returns the report written to ``OUT/report.json``.
     ``antialias``: the crops' prefilter (:func:`predict_joints`)."""
     out = Path(out)
     command = reference_command(reference)
-    pr = scored_predictor(checkpoint, flip)  # a bad checkpoint stops the run before any work
+    pr = scored_predictor(checkpoint, flip, fit)  # a bad checkpoint stops the run before any work
     real_people = read_boxes(real)
     out.mkdir(parents=True, exist_ok=True)
     syn_people = synthetic_people(synthetic, out / "synthetic_images", synthetic_people_max)
@@ -546,7 +550,7 @@ def run_transfer(checkpoint: str | Path, real: str | Path, synthetic: str | Path
     cache = json.loads((out / "reference.json").read_text())
     rep.update(checkpoint=str(checkpoint), real=str(real), synthetic=str(synthetic), flip_test=flip,
                reference=sorted({v["reference"] for v in cache.values()}), command=" ".join(sys.argv),
-               antialias=antialias)
+               antialias=antialias, fit=pr.fit.iterations if getattr(pr, "fit", None) is not None else 0)
     faces = pr.body.faces.numpy() if hasattr(pr, "body") else None
     contact_sheet(d_real, v_real, faces, out / "sheet_real.png", sheet_count)
     contact_sheet(d_syn, v_syn, faces, out / "sheet_synthetic.png", sheet_count)

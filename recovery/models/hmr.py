@@ -142,20 +142,30 @@ class HMRBLSM(nn.Module):
             self.backbone.eval()  # a fixed backbone keeps its BatchNorm statistics
         return self
 
-    def features(self, images: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) RGB in [0, 1] -> the regressor's input (B, C)."""
+    def evidence(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B, 3, H, W) RGB in [0, 1] -> the regressor's input (B, C) and, with a keypoint head, MoveNet's
+        keypoints (B, 17, 3) ``(u, v, score)`` in pixels of the crop (else None)."""
         x = self.backbone.normalize(images)
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.train_blocks != 0):
             if self.encoder is None:
-                return self.backbone(x)
+                return self.backbone(x), None
             out = self.backbone.run(x)
             kp = self.backbone.keypoints(out, soft=True)
             pooled = out.c32.mean(dim=(2, 3)) if self.encoder.image is not None else None
-        return self.encoder(kp, float(images.shape[-1]), pooled)
+        return self.encoder(kp, float(images.shape[-1]), pooled), kp
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) RGB in [0, 1] -> the regressor's input (B, C)."""
+        return self.evidence(images)[0]
 
     def forward(self, images: torch.Tensor) -> HMROutput:
         """Args: images (B, 3, H, W) RGB in [0, 1] (normalised here). Returns :class:`HMROutput`."""
         return self.decode(self.regressor(self.features(images)))
+
+    def forward_keypoints(self, images: torch.Tensor) -> tuple[HMROutput, torch.Tensor | None]:
+        """:meth:`forward` and the keypoints of :meth:`evidence` (None without a keypoint head)."""
+        f, kp = self.evidence(images)
+        return self.decode(self.regressor(f)), kp
 
     def decode(self, thetas: torch.Tensor) -> HMROutput:
         p = self.layout.split(thetas[-1])

@@ -287,3 +287,29 @@ def test_tiny_movenet_run_trains_and_predicts(tmp_path, fake_root, train_cache) 
     assert all(torch.equal(got[k].float(), ref[k].float()) for k in ref)
     res = pr(torch.rand(2, 3, 32, 32), torch.eye(3).expand(2, 3, 3) * torch.tensor([40.0, 40.0, 1.0])[:, None])
     assert torch.isfinite(res.vertices).all() and res.keypoints_2d.shape[0] == 2
+
+
+def test_fit_brings_the_projection_onto_the_keypoints_and_keeps_unsure_people(model) -> None:
+    from recovery.models.fit2d import FitSettings, fit_to_keypoints
+    from recovery.models.hmr import HMROutput, predict_body
+    from recovery.utils.geometry import UPRIGHT_FACING_CAMERA
+
+    torch.manual_seed(0)
+    b, crop = 3, 192
+    ids = [model.keypoint_names.index(n) for n in COCO_KEYPOINTS]
+    k = torch.tensor([[400.0, 0, 96], [0, 400.0, 96], [0, 0, 1]]).expand(b, 3, 3)
+    nb, ns = model.num_bone_coeffs, model.num_shape_coeffs
+    truth = HMROutput(pose=torch.randn(b, 47) * 0.5, orient=UPRIGHT_FACING_CAMERA.expand(b, 3, 3), bone=torch.zeros(b, nb),
+                      shape=torch.zeros(b, ns), cam=torch.tensor([[0.9, 0.0, 0.05]]).expand(b, 3), thetas=torch.zeros(1, b, 1))
+    target = predict_body(model, truth, k, crop, torch.tensor(ids)).keypoints_2d
+    conf = torch.full((b, 17, 1), 0.9)
+    conf[2] = 0.1  # a person MoveNet is unsure of: kept as predicted
+    start = HMROutput(pose=truth.pose + 0.4 * torch.randn(b, 47), orient=truth.orient, bone=truth.bone, shape=truth.shape,
+                      cam=truth.cam + torch.tensor([0.05, 0.03, -0.02]), thetas=truth.thetas)
+    fitted = fit_to_keypoints(model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=60))
+    err = lambda o: (predict_body(model, o, k, crop, torch.tensor(ids)).keypoints_2d - target).norm(dim=-1).mean(-1)  # noqa: E731
+    before, after = err(start), err(fitted)
+    assert (after[:2] < 0.5 * before[:2]).all(), (before, after)
+    assert torch.equal(fitted.pose[2], start.pose[2]) and torch.equal(fitted.cam[2], start.cam[2])
+    assert fitted.bone is start.bone and fitted.shape is start.shape
+    assert fit_to_keypoints(model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=0)) is start
