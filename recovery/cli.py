@@ -13,7 +13,8 @@ USAGE = """\
 recovery train CONFIG --out DIR [--resume]        train (configs/recovery/*.yaml; '-' = defaults)
 recovery evaluate CHECKPOINT DATASET --out DIR [--flip]    metrics.json, sheet.png (CHECKPOINT may be 'default')
 recovery predict CHECKPOINT PATH --out DIR [--focal F] [--flip] [--min-score S] [--detect-size N]
-                 [--every N] [--max-frames M]    every person of an image, folder or video (people.json)
+                 [--detect-passes multi|tiles|single] [--every N] [--max-frames M]
+                                                  every person of an image, folder or video (people.json)
 recovery predict CHECKPOINT IMAGE --out DIR (--box X0 Y0 X1 Y1 | --whole) [--focal F] [--flip]    one person
 recovery cache DATASET --out DIR [--crop N]       pre-crop a dataset for training (train does it itself)
 recovery export CHECKPOINT --out FILE [--full]    inference-only copy (float16 unless --full)
@@ -51,8 +52,14 @@ def _parser() -> argparse.ArgumentParser:
                      "as the crop (predict without --box before the detector)")
     pr.add_argument("--focal", type=float, help="focal length in pixels (default: the image's longer side)")
     pr.add_argument("--flip", action="store_true", help="HMR-BLSM: flip test-time augmentation")
-    pr.add_argument("--min-score", type=float, help="the detector's person score threshold (default 0.25)")
-    pr.add_argument("--detect-size", type=int, help="the detector's input, longer side, pixels (default 256)")
+    pr.add_argument("--min-score", type=float, help="the detector's person score threshold (default 0.2; "
+                    "0.25 with --detect-passes single)")
+    pr.add_argument("--detect-size", type=int,
+                    help="each detector pass's input, longer side, pixels (default 256)")
+    pr.add_argument("--detect-passes", choices=("multi", "tiles", "single"), default="multi",
+                    help="multi (default): MoveNet MultiPose on the whole image and on overlapping tiles, "
+                    "merged, each person scored again by MoveNet SinglePose; tiles: the same without that "
+                    "second look; single: one pass on the whole image (at most 6 people)")
     pr.add_argument("--every", type=int, default=1, help="videos: every N-th frame")
     pr.add_argument("--max-frames", type=int, default=0, help="videos: at most M frames (0: all)")
     c = sub.add_parser("cache")
@@ -141,7 +148,7 @@ def _run(args: argparse.Namespace) -> int:
             return 0
         doc = predict_people(args.checkpoint, args.image, args.out, args.focal, flip=args.flip,
                              min_score=args.min_score, detect_size=args.detect_size, every=args.every,
-                             max_frames=args.max_frames)
+                             max_frames=args.max_frames, detect_passes=args.detect_passes)
         people = sum(len(e["people"]) for e in doc["images"])
         print(f"wrote {args.out}/people.json: {people} people in {len(doc['images'])} images, "
               f"a mesh per person, an overlay per image")

@@ -3,11 +3,14 @@ photographs or a video.
 
 PATH is an image, a folder (its image files, :data:`IMAGE_SUFFIXES`, not its sub-folders, by name) or a
 video (:data:`VIDEO_SUFFIXES`; frames decoded with PyAV, ``--every N`` keeps every N-th frame and
-``--max-frames M`` stops after M kept frames). In each image the person detector
-(:class:`recovery.detect.PersonDetector`, MoveNet MultiPose: the image at 256 px on its longer side,
-people scoring at least 0.25) finds up to 6 people; each is predicted from the square crop about its
-box's centre of side 1.2 times the box's longer side (SPIN's rule). An image where nobody is found is
-listed with no people and a one-line note.
+``--max-frames M`` stops after M kept frames). In each image the person detector finds the people
+(``--detect-passes``, :func:`recovery.detect.build_detector`): by default ``multi``
+(:class:`recovery.detect.MultiPassDetector`: MoveNet MultiPose on the whole image and on overlapping
+tiles, merged, each person scored again by MoveNet SinglePose, people scoring at least 0.2);
+``single`` is one MultiPose pass on the image at 256 px (:class:`recovery.detect.PersonDetector`, up
+to 6 people scoring at least 0.25). Each person is predicted from the square crop about its box's
+centre of side 1.2 times the box's longer side (SPIN's rule). An image where nobody is found is listed
+with no people and a one-line note.
 
 An arbitrary photo has unknown intrinsics: the camera is taken as a pinhole with focal length
 ``--focal`` pixels (default: the image's longer side, about a 53-degree field of view) and the principal
@@ -320,7 +323,8 @@ class _Staging:
 
 def predict_people(checkpoint: str | Path, path: str | Path, out: str | Path, focal: float | None = None,
                    flip: bool = False, min_score: float | None = None, detect_size: int | None = None,
-                   every: int = 1, max_frames: int = 0, log: Any = print) -> dict[str, Any]:
+                   every: int = 1, max_frames: int = 0, log: Any = print,
+                   detect_passes: str = "multi") -> dict[str, Any]:
     """Every person of an image, folder or video (module docstring); returns what ``people.json`` holds.
 
     Args:
@@ -329,30 +333,38 @@ def predict_people(checkpoint: str | Path, path: str | Path, out: str | Path, fo
         out: the output folder.
         focal: focal length in pixels (default: each image's longer side).
         flip: HMR-BLSM flip test-time augmentation.
-        min_score: the detector's person score threshold (default :data:`recovery.detect.MIN_SCORE`).
-        detect_size: the detector's longer side, pixels (default :data:`recovery.detect.SIZE`).
+        min_score: the detector's person score threshold (default: the detector's,
+            :data:`recovery.detect.MULTI_MIN_SCORE` for several passes, :data:`recovery.detect.MIN_SCORE`
+            for one).
+        detect_size: each detector pass's input, longer side, pixels (default :data:`recovery.detect.SIZE`).
         every, max_frames: videos: keep every ``every``-th frame, at most ``max_frames`` (0: all).
         log: one line per image without people.
+        detect_passes: ``multi``, ``tiles`` or ``single`` (:data:`recovery.detect.DETECT_PASSES`).
 
     Raises:
         ValueError: one line ``PATH: problem`` (nothing is written then).
     """
-    from recovery.detect import MIN_SCORE, SIZE, PersonDetector
+    from recovery.detect import DETECT_PASSES, SIZE, MultiPassDetector, build_detector
     from recovery.models.backbones.movenet import COCO_KEYPOINTS
 
     if every < 1 or max_frames < 0:
         raise ValueError(f"--every must be >= 1 and --max-frames >= 0, got {every} and {max_frames}")
     if focal is not None and focal <= 0:
         raise ValueError(f"--focal must be positive, got {focal}")
+    if detect_passes not in DETECT_PASSES:
+        raise ValueError(f"--detect-passes must be one of {', '.join(DETECT_PASSES)}, got {detect_passes!r}")
     src = open_source(path)
     pr = load_predictor(checkpoint).use_flip(flip)
-    detector = PersonDetector(size=detect_size or SIZE,
-                              min_score=MIN_SCORE if min_score is None else min_score)
+    detector = build_detector(detect_passes, detect_size or SIZE, min_score)
+    settings = {"name": "movenet_multipose", "passes": detect_passes, "size": detector.size,
+                "min_score": detector.min_score}
+    if isinstance(detector, MultiPassDetector):
+        settings.update(overlap=detector.overlap, look="movenet_lightning" if detector.look else None)
     faces = pr.body.faces.numpy()
     out = Path(out)
     doc: dict[str, Any] = {
         "input": str(path), "kind": src.kind, "checkpoint": str(pr.path), "task": pr.task,
-        "detector": {"name": "movenet_multipose", "size": detector.size, "min_score": detector.min_score},
+        "detector": settings,
         "crop": {"context": BOX_CONTEXT, "size": pr.crop},
         "keypoint_names": list(pr.body.keypoint_names), "detector_keypoint_names": list(COCO_KEYPOINTS),
         "conventions": CONVENTIONS, "images": [],

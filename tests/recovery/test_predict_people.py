@@ -57,7 +57,8 @@ def test_predict_every_person_of_a_folder(photos, tmp_path, capsys):
     assert "3 people in 2 images" in capsys.readouterr().out
     doc = json.loads((out / "people.json").read_text())
     assert doc["kind"] == "folder" and doc["task"] == "hmr_blsm"
-    assert doc["detector"] == {"name": "movenet_multipose", "size": 256, "min_score": 0.25}
+    assert doc["detector"] == {"name": "movenet_multipose", "passes": "multi", "size": 256, "min_score": 0.2,
+                               "overlap": 0.5, "look": "movenet_lightning"}
     names = doc["keypoint_names"]
     assert [e["image"] for e in doc["images"]] == ["one.png", "two.jpg"]
     assert [len(e["people"]) for e in doc["images"]] == [1, 2]
@@ -99,6 +100,35 @@ def test_predict_every_person_of_a_folder(photos, tmp_path, capsys):
     single = json.loads((tmp_path / "box" / "params.json").read_text())
     assert np.allclose(single["transl"], p["transl"], atol=1e-5)
     assert np.allclose(single["angles"], p["angles"], atol=1e-5)
+
+
+def test_small_people_of_a_wide_photograph_and_the_single_pass(tmp_path, capsys):
+    """Three people 112 px tall on a 1024 px wide image: the default detector (several passes) writes
+    each; one pass on the whole image (--detect-passes single) sees them 28 px tall and finds none."""
+    from PIL import Image
+
+    skimage_data = pytest.importorskip("skimage.data")
+    small = np.asarray(Image.fromarray(skimage_data.astronaut()).resize((112, 112), Image.LANCZOS))
+    canvas = np.full((384, 1024, 3), 128, np.uint8)
+    corners = [(100, 80), (460, 20), (840, 260)]
+    for x, y in corners:
+        canvas[y:y + 112, x:x + 112] = small
+    img = _save(tmp_path / "three.png", canvas)
+    assert main(["predict", "default", str(img), "--out", str(tmp_path / "multi")]) == 0
+    people = json.loads((tmp_path / "multi" / "people.json").read_text())["images"][0]["people"]
+    assert len(people) == 3
+    for (x, y), p in zip(corners, sorted(people, key=lambda q: q["box"][0]), strict=True):
+        x0, y0, x1, y1 = p["box"]
+        assert x - 5 <= x0 < x1 <= x + 117 and y - 5 <= y0 < y1 <= y + 117, (x, y, p["box"])
+        assert (tmp_path / "multi" / p["mesh"]).is_file()
+    capsys.readouterr()
+    assert main(["predict", "default", str(img), "--out", str(tmp_path / "single"),
+                 "--detect-passes", "single"]) == 0
+    assert f"{img}: no person found" in capsys.readouterr().out
+    doc = json.loads((tmp_path / "single" / "people.json").read_text())
+    want = {"name": "movenet_multipose", "passes": "single", "size": 256, "min_score": 0.25}
+    assert doc["detector"] == want
+    assert doc["images"][0]["people"] == []
 
 
 def test_an_image_without_people_is_listed_empty(tmp_path, capsys):
