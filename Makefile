@@ -147,12 +147,12 @@ recovery-model: $(STAMP)
 	$(BIN)/recovery export out/transfer/soups/wise_garments_effects_subjects.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_default/metrics.json
 
 # The training data of HMR-BLSM on MoveNet (configs/recovery/movenet, docs/transfer.md): the validation set,
-# train_hdri.yaml (the current defaults) cut to 2000 images of 48 subjects and the garments-and-postures
+# train_hdri.yaml (the current defaults) cut to 3000 images of 48 subjects and the garments-and-postures
 # data (seated people, arms over their range) cut to 800 images of 48 subjects (about 30 minutes on 2 cores;
 # resumable).
 movenet-data: $(STAMP)
 	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
-	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/movenet/data/train_hdri --workers 2 --resume --num 2000 --set subjects.count=48
+	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/movenet/data/train_hdri --workers 2 --resume --num 3000 --set subjects.count=48
 	$(BIN)/synth generate configs/synth/transfer/garments_postures.yaml --out out/movenet/data/garments_postures --workers 2 --resume --num 800 --set subjects.count=48
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
