@@ -1,18 +1,51 @@
-"""Find the people in a photograph: MoveNet MultiPose (:mod:`recovery.models.movenet_multipose`) on the
-image scaled to a fixed longer side, its people mapped back to image pixels and kept above a score.
+"""Find the people in a photograph with MoveNet MultiPose (:mod:`recovery.models.movenet_multipose`): one
+pass on the whole image (:class:`PersonDetector`) or several, on the whole image and on overlapping
+tiles, merged and checked by a second look (:class:`MultiPassDetector`, ``recovery predict``'s default).
 
-Input size policy (MoveNet's own for MultiPose, as TF.js ``pose-detection`` runs it): the image is
-scaled so that its longer side is ``size`` pixels (default 256, MoveNet's recommendation; 128 to 512,
-a multiple of 32) keeping its aspect ratio, the shorter side rounded to whole pixels, then padded with
-black on the bottom or right to the next multiple of 32. The scaling is bilinear with antialiasing
-(``torch.nn.functional.interpolate(antialias=True)``, half-pixel centres): TF.js resizes without a
-prefilter, which aliases a large photograph; both map pixel centres alike, so coordinates go back by the
-per-axis scale alone. Larger ``size`` finds smaller people at about the square of the cost.
+Input size policy of a pass (MoveNet's own for MultiPose, as TF.js ``pose-detection`` runs it): the
+image (or tile) is scaled so that its longer side is ``size`` pixels (default 256, MoveNet's
+recommendation; 128 to 512, a multiple of 32) keeping its aspect ratio, the shorter side rounded to whole
+pixels, then padded with black on the bottom or right to the next multiple of 32. The scaling is
+bilinear with antialiasing (``torch.nn.functional.interpolate(antialias=True)``, half-pixel centres):
+TF.js resizes without a prefilter, which aliases a large photograph; both map pixel centres alike, so
+coordinates go back by the per-axis scale alone. Larger ``size`` finds smaller people at about the
+square of the cost.
 
-A person is kept when its score (the centre peak times the mean of its confident keypoint scores,
-:func:`recovery.models.movenet_multipose.decode_multipose`) is at least ``min_score``: 0.25 by
+One pass: a person is kept when its score (the centre peak times the mean of its confident keypoint
+scores, :func:`recovery.models.movenet_multipose.decode_multipose`) is at least ``min_score``: 0.25 by
 default, the ``minPoseScore`` default of TF.js ``pose-detection`` for MoveNet. Its box is clipped to
-the image; people are returned by descending score.
+the image; people are returned by descending score. A pass sees at most 6 people, and MoveNet finds a
+person from about 100 px tall at its input: at 256 px a 1024 px wide photograph shows a 150 px tall
+person 37 px tall, and one pass misses it.
+
+Several passes (:class:`MultiPassDetector`), after SAHI's sliced inference (Akyon et al., ICIP 2022):
+
+1. passes (:func:`detection_tiles`): the whole image as above, then levels of square tiles, each tile
+   scaled to ``size``: tiles of ``size`` image pixels at full scale (a person 100 to 200 px tall is 100
+   to 200 px at the input), then of ``2 size`` at half scale (people of 200 to 400 px), ``4 size`` ...
+   while the tile is smaller than the image's longer side. Neighbouring tiles of a level overlap by half
+   a tile (:data:`TILE_OVERLAP`), so any person up to half a tile lies whole in one tile of the level,
+   and a larger one whole in a tile of the next level or in the whole image. Each pass gives up to 6
+   people; those scoring at least :data:`CANDIDATE_SCORE` (0.1) are candidates.
+2. merge (:func:`merge_people`): candidates whose box ends at a tile edge inside the image
+   (:func:`is_cut`, within 3 % of the tile's side) are cut; greedy non-maximum suppression takes the
+   whole candidates first, then the cut ones, each by descending score, and a candidate joins a person
+   already kept when their boxes' IoU is at least 0.5 (:data:`MERGE_IOU`), their keypoints' similarity
+   (COCO's OKS over the keypoints both see, :func:`keypoint_similarity`) at least 0.5
+   (:data:`MERGE_OKS`), or, for a cut candidate, 60 % of its box lies in the kept box
+   (:data:`CUT_INSIDE`). A person keeps its first candidate's box and keypoints and the best score of
+   its group.
+3. second look (:func:`second_look`, on by default): MoveNet SinglePose Lightning on the square crop of
+   1.25 times the box's longer side about its centre; the person's score becomes the mean of its
+   MultiPose score and the look's mean keypoint score, and it is kept from :data:`MULTI_MIN_SCORE`
+   (0.2). On the dev set it lifts three half-hidden people that MultiPose scores under 0.2 over the
+   threshold, drops one, and lets in a tree that MultiPose scores 0.12 (SinglePose 0.36); most
+   candidates that are no person (a foot, a microphone stand, a camera) stay under it.
+
+The defaults (the two levels' scales, the half-tile overlap, 0.1 and 0.2, the mean of the two scores)
+were chosen on the transfer dev set (``benchmarks/detect_devset.py``, docs/recovery.md), the same 14
+photographs the numbers there come from. Boxes come from MultiPose alone: widening a cut person's box to
+the second look's keypoints helped three people of the dev set and lost one, so it is not done.
 """
 
 from __future__ import annotations
@@ -35,6 +68,9 @@ MULTI_MIN_SCORE = 0.2
 """Default person score threshold of the multi-pass detector (chosen on the transfer dev set)."""
 CANDIDATE_SCORE = 0.1
 """Multi-pass: the people of every pass scoring at least this are candidates for the merge."""
+MAX_TILES = 64
+"""At most this many tiles in the finest level (a 1024 x 683 photograph has 28 at full scale; a
+4032 x 3024 one would have 713, so its finest tiles are coarser)."""
 TILE_OVERLAP = 0.5
 """Neighbouring tiles of a level overlap by at least this fraction of their side."""
 CUT_MARGIN = 0.03
@@ -169,12 +205,17 @@ def tile_grid(height: int, width: int, side: int,
 
 
 def detection_tiles(height: int, width: int, size: int = SIZE, overlap: float = TILE_OVERLAP,
-                    finest: float = 1.0) -> list[Tile]:
+                    finest: float = 1.0, max_tiles: int = MAX_TILES) -> list[Tile]:
     """The multi-pass detector's regions: the whole image, then levels of square tiles of side
-    ``size / s`` image pixels for ``s = finest, finest / 2, finest / 4, ...`` (each tile is scaled by
-    ``s`` to ``size`` pixels) as long as that side is smaller than the image's longer side."""
+    ``size / s`` image pixels for ``s = f, f / 2, f / 4, ...`` (each tile is scaled by ``s`` to ``size``
+    pixels) as long as that side is smaller than the image's longer side. ``f`` is ``finest``, or less
+    (by steps of 0.8) where the finest level would have more than ``max_tiles`` tiles: a large
+    photograph is searched for people of ``100 / f`` px and more, not 100 px."""
     tiles = [Tile((0, 0, width, height), 0)]
-    s, level = finest, 1
+    s = finest
+    while len(tile_grid(height, width, round(size / s), overlap)) > max_tiles:
+        s *= 0.8
+    level = 1
     while round(size / s) < max(height, width):
         tiles += [Tile(r, level) for r in tile_grid(height, width, round(size / s), overlap)]
         s, level = s / 2, level + 1

@@ -9,6 +9,7 @@ import pytest
 
 from recovery.detect import (
     COCO_SIGMAS,
+    MAX_TILES,
     MULTI_MIN_SCORE,
     Detection,
     MultiPassDetector,
@@ -71,6 +72,12 @@ def test_tiles_cover_the_image_and_hold_every_small_person_whole() -> None:
     assert sides == {1: 256, 2: 512}
     assert len(tiles) == 1 + 7 * 4 + 3 * 2
     assert [t.level for t in detection_tiles(200, 250)] == [0]  # a small image: one pass
+    # a 12 Mpixel photograph: at most MAX_TILES tiles in the finest level, coarser than full scale
+    big = detection_tiles(3024, 4032)
+    finest = [t for t in big if t.level == 1]
+    side = finest[0].rect[2] - finest[0].rect[0]
+    assert len(finest) <= MAX_TILES < len(tile_grid(3024, 4032, round(side * 0.8)))  # no coarser than need be
+    assert len(big) < 2 * MAX_TILES
     with pytest.raises(ValueError, match="overlap"):
         tile_grid(100, 100, 64, 1.0)
 
