@@ -25,8 +25,9 @@ Several passes (:class:`MultiPassDetector`), after SAHI's sliced inference (Akyo
    to 200 px at the input), then of ``2 size`` at half scale (people of 200 to 400 px), ``4 size`` ...
    while the tile is smaller than the image's longer side. Neighbouring tiles of a level overlap by half
    a tile (:data:`TILE_OVERLAP`), so any person up to half a tile lies whole in one tile of the level,
-   and a larger one whole in a tile of the next level or in the whole image. Each pass gives up to 6
-   people; those scoring at least :data:`CANDIDATE_SCORE` (0.1) are candidates.
+   and a larger one whole in a tile of the next level or in the whole image. The finest level has at
+   most :data:`MAX_TILES` tiles: on a large photograph it starts coarser than full scale. Each pass
+   gives up to 6 people; those scoring at least :data:`CANDIDATE_SCORE` (0.1) are candidates.
 2. merge (:func:`merge_people`): candidates whose box ends at a tile edge inside the image
    (:func:`is_cut`, within 3 % of the tile's side) are cut; greedy non-maximum suppression takes the
    whole candidates first, then the cut ones, each by descending score, and a candidate joins a person
@@ -69,7 +70,7 @@ MULTI_MIN_SCORE = 0.2
 CANDIDATE_SCORE = 0.1
 """Multi-pass: the people of every pass scoring at least this are candidates for the merge."""
 MAX_TILES = 64
-"""At most this many tiles in the finest level (a 1024 x 683 photograph has 28 at full scale; a
+"""At most this many tiles in the finest level (a 1024 x 683 photograph has 35 at full scale; a
 4032 x 3024 one would have 713, so its finest tiles are coarser)."""
 TILE_OVERLAP = 0.5
 """Neighbouring tiles of a level overlap by at least this fraction of their side."""
