@@ -49,6 +49,8 @@ ROWS = {  # name: (what it is, checkpoint or config)
                      "config"),
     "kpimg_last4": ("kpimg_frozen's recipe with the last 4 trunk blocks, the pyramid and the heads trained at 0.1x "
                     "the rate", "config"),
+    "wise_last4": ("WiSE-FT: the weights of kpimg_frozen and kpimg_last4 averaged half and half (same start, same seed)",
+                   "wise:kpimg_frozen:kpimg_last4"),
     "kp_frozen_128": ("kp_frozen at 128 px crops (MoveNet below its native 192)", "config"),
     "thunder_kp_frozen": ("kp_frozen on MoveNet Thunder at 256 px", "config"),
 }
@@ -63,14 +65,16 @@ def run(cmd: list[str], log: Path) -> None:
         raise SystemExit(f"movenet_rows: {' '.join(cmd)} failed (exit {r.returncode}); see {log}")
 
 
-def score(name: str, checkpoint: str, draws: int) -> dict:
-    """Evaluate (not for the ceiling), transfer check and jitter of one checkpoint."""
-    res: dict = {"checkpoint": checkpoint}
+def score(name: str, checkpoint: str, draws: int, fit: int | None = None) -> dict:
+    """Evaluate (not for the ceiling), transfer check and jitter of one checkpoint (with the test-time fit of
+    ``fit`` iterations where given)."""
+    res: dict = {"checkpoint": checkpoint, "fit": fit or 0}
+    extra = ["--fit", str(fit)] if fit is not None else []
     ceiling = checkpoint.startswith("movenet_")
     if not ceiling:
         ev = OUT / "eval" / name
         if not (ev / "metrics.json").is_file():
-            run([str(BIN / "recovery"), "evaluate", checkpoint, TEST, "--out", str(ev)], OUT / "logs" / f"{name}.log")
+            run([str(BIN / "recovery"), "evaluate", checkpoint, TEST, "--out", str(ev), *extra], OUT / "logs" / f"{name}.log")
         m = json.loads((ev / "metrics.json").read_text())
         res["test"] = {k: m[k] for k in ("mpjpe_mm", "pa_mpjpe_mm", "pve_mm") if k in m}
     check = OUT / "check" / name
@@ -79,7 +83,7 @@ def score(name: str, checkpoint: str, draws: int) -> dict:
         check.mkdir(parents=True, exist_ok=True)
         if ref.is_file() and not (check / "reference.json").is_file():
             shutil.copy(ref, check / "reference.json")  # the same people: MediaPipe need not run again
-        run([str(BIN / "recovery"), "transfer", checkpoint, "--real", REAL, "--synthetic", TEST, "--out", str(check)],
+        run([str(BIN / "recovery"), "transfer", checkpoint, "--real", REAL, "--synthetic", TEST, "--out", str(check), *extra],
             OUT / "logs" / f"{name}.log")
     rep = json.loads((check / "report.json").read_text())
     res["transfer"] = {"ratio@0.1": rep["transfer_ratio@0.1"], "ratio_90": rep["transfer_ratio_90"],
@@ -89,7 +93,7 @@ def score(name: str, checkpoint: str, draws: int) -> dict:
     jit = check / "jitter.json"
     if draws and not jit.is_file():
         run([sys.executable, str(ROOT / "benchmarks/transfer_jitter.py"), checkpoint, "--check", str(check), "--draws",
-             str(draws), "--json", str(jit)], OUT / "logs" / f"{name}.log")
+             str(draws), "--json", str(jit), *extra], OUT / "logs" / f"{name}.log")
     if jit.is_file():
         j = json.loads(jit.read_text())
         import numpy as np
@@ -105,8 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     ap.add_argument("--draws", type=int, default=8)
+    ap.add_argument("--fit", type=int, help="score with the test-time fit of N iterations (rows named ROW_fitN)")
     args = ap.parse_args(argv)
-    table = json.loads(JSON.read_text()) if JSON.is_file() else {}
     for name in args.rows:
         what, src = ROWS[name]
         t0 = time.time()
@@ -117,15 +121,27 @@ def main(argv: list[str] | None = None) -> int:
                 run([str(BIN / "recovery"), "train", cfg, "--out", str(run_dir), "--resume"], OUT / "logs" / f"{name}.log")
                 (run_dir / ".trained").write_text(time.strftime("%Y-%m-%d %H:%M"))
             checkpoint = str(run_dir / "last.pt")
+        elif src.startswith("wise:"):
+            from recovery.checkpoint import average_checkpoints
+
+            a, b = src.split(":")[1:]
+            soup = OUT / "soups" / f"{name}.pt"
+            if not soup.is_file():
+                soup.parent.mkdir(parents=True, exist_ok=True)
+                average_checkpoints([(OUT / "runs" / a / "last.pt", 0.5), (OUT / "runs" / b / "last.pt", 0.5)], soup)
+            checkpoint = str(soup)
         else:
             checkpoint = src
-        entry = {"what": what, **score(name, checkpoint, args.draws), "scored": time.strftime("%Y-%m-%d"),
+        key = f"{name}_fit{args.fit}" if args.fit is not None else name
+        entry = {"what": what + (f"; test-time fit, {args.fit} iterations" if args.fit else ""),
+                 **score(key, checkpoint, args.draws, args.fit), "scored": time.strftime("%Y-%m-%d"),
                  "seconds": round(time.time() - t0)}
-        table[name] = entry
+        table = json.loads(JSON.read_text()) if JSON.is_file() else {}  # rows scored meanwhile by another process
+        table[key] = entry
         JSON.parent.mkdir(parents=True, exist_ok=True)
         JSON.write_text(json.dumps(table, indent=1))
         t = entry["transfer"]
-        print(f"[movenet] {name}: real {100 * t['real_pck@0.1']['ours']:.1f} % / synthetic {100 * t['synthetic_pck@0.1']['ours']:.1f} %, "
+        print(f"[movenet] {key}: real {100 * t['real_pck@0.1']['ours']:.1f} % / synthetic {100 * t['synthetic_pck@0.1']['ours']:.1f} %, "
               f"ratio {t['ratio@0.1']:.2f} ({t['ratio_90'][0]:.2f} to {t['ratio_90'][1]:.2f})"
               + (f", PA-MPJPE {entry['test']['pa_mpjpe_mm']:.1f} mm" if "test" in entry else ""), flush=True)
     return 0

@@ -86,8 +86,16 @@ def average_checkpoints(parts: list[tuple[str | Path, float]], dst: str | Path) 
         raise ValueError(f"{dst}: weights must be >= 0 with a positive sum")
     cks = [(read_checkpoint(resolve(p)), float(w)) for p, w in parts]
     ref = cks[0][0]
+    def network(ck: dict) -> str | None:  # the hash of the network as today's config defines it
+        from recovery.config import config_from_json
+
+        try:
+            return config_from_json({"task": ck["task"], **ck["config"]}, "checkpoint").model_hash()
+        except (KeyError, TypeError, ValueError):
+            return ck.get("model_hash")
+
     for (ck, _), (p, _) in zip(cks, parts):
-        if ck.get("model_hash") != ref.get("model_hash") or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
+        if network(ck) != network(ref) or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
             raise ValueError(f"{resolve(p)}: another network or BLSM model than {resolve(parts[0][0])}")
     total = sum(w for _, w in cks)
     state = {}

@@ -461,6 +461,8 @@ class RecoveryConfig:
         for section, key in LATER_SETTINGS:  # a network described before these settings keeps its hash
             if section == "model" and arch[key] == getattr(ModelConfig(), key):
                 arch.pop(key)
+        arch.pop("train_blocks", None)  # which weights train, not which weights there are: a fixed-backbone run
+        # initialises or averages with a fine-tune of the same network
         if self.task != "hmr_blsm":
             m = self.mesh
             arch = {"task": self.task, "model": arch if self.task == "mesh" else None,

@@ -312,3 +312,12 @@ def test_fit_brings_the_projection_onto_the_keypoints_and_keeps_unsure_people(mo
     assert torch.equal(fitted.pose[2], start.pose[2]) and torch.equal(fitted.cam[2], start.cam[2])
     assert fitted.bone is start.bone and fitted.shape is start.shape
     assert fit_to_keypoints(model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=0)) is start
+
+
+def test_which_blocks_train_does_not_make_another_network() -> None:
+    from recovery.config import ModelConfig, RecoveryConfig
+
+    a = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=0))
+    b = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=4))
+    c = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints+pooled", train_blocks=4))
+    assert a.model_hash() == b.model_hash() != c.model_hash()
