@@ -69,6 +69,18 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return ck
 
 
+def network_hash(ck: dict[str, Any]) -> str | None:
+    """The checkpoint's network as today's config defines it (:meth:`recovery.config.RecoveryConfig.model_hash`
+    of its stored config), so that a setting later left out of the hash (``model.train_blocks``) does not
+    make the same network another; the stored ``model_hash`` where the config cannot be read."""
+    from recovery.config import config_from_json
+
+    try:
+        return config_from_json({"task": ck["task"], **ck["config"]}, "checkpoint").model_hash()
+    except (KeyError, TypeError, ValueError):
+        return ck.get("model_hash")
+
+
 def average_checkpoints(parts: list[tuple[str | Path, float]], dst: str | Path) -> Path:
     """Write the weighted mean of the networks of ``parts`` (``(checkpoint, weight)``; ``default``
     allowed) as an inference checkpoint: WiSE-FT (Wortsman et al., CVPR 2022) for a network and its
@@ -86,16 +98,8 @@ def average_checkpoints(parts: list[tuple[str | Path, float]], dst: str | Path) 
         raise ValueError(f"{dst}: weights must be >= 0 with a positive sum")
     cks = [(read_checkpoint(resolve(p)), float(w)) for p, w in parts]
     ref = cks[0][0]
-    def network(ck: dict) -> str | None:  # the hash of the network as today's config defines it
-        from recovery.config import config_from_json
-
-        try:
-            return config_from_json({"task": ck["task"], **ck["config"]}, "checkpoint").model_hash()
-        except (KeyError, TypeError, ValueError):
-            return ck.get("model_hash")
-
     for (ck, _), (p, _) in zip(cks, parts):
-        if network(ck) != network(ref) or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
+        if network_hash(ck) != network_hash(ref) or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
             raise ValueError(f"{resolve(p)}: another network or BLSM model than {resolve(parts[0][0])}")
     total = sum(w for _, w in cks)
     state = {}

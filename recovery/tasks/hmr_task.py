@@ -27,7 +27,7 @@ from torch import nn
 import blsm
 from blsm.joint_limits import angles_from_unconstrained
 from recovery import distributed as D
-from recovery.checkpoint import read_checkpoint, resolve
+from recovery.checkpoint import network_hash, read_checkpoint, resolve
 from recovery.config import RecoveryConfig, model_file
 from recovery.datasets.cache import CropCache
 from recovery.datasets.real_poses import RealPoses, real_poses
@@ -117,7 +117,7 @@ class HMRTask:
         """``train.init``: start from the weights of a checkpoint of the same network and model file."""
         path = resolve(checkpoint)
         ck = read_checkpoint(path)
-        if ck.get("task") != "hmr_blsm" or ck.get("model_hash") != self.cfg.model_hash() or "model" not in ck.get("modules", {}):
+        if ck.get("task") != "hmr_blsm" or network_hash(ck) != self.cfg.model_hash() or "model" not in ck.get("modules", {}):
             raise ValueError(f"{path}: train.init is not a checkpoint of this network (model settings differ)")
         ours = self.meta.get("blsm_model_sha256")
         if ours is not None and ck.get("blsm_model_sha256") != ours:
