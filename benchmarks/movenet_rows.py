@@ -49,7 +49,6 @@ ROWS = {  # name: (what it is, checkpoint or config)
                      "config"),
     "kpimg_last4": ("kpimg_frozen's recipe with the last 4 trunk blocks, the pyramid and the heads trained at 0.1x "
                     "the rate", "config"),
-    "kp_frozen_long": ("kp_frozen trained for 1200 more steps (2000 in all; train.init, the schedule restarted)", "config"),
     "wise_last4": ("WiSE-FT: the weights of kpimg_frozen and kpimg_last4 averaged half and half (same start, same seed)",
                    "wise:kpimg_frozen:kpimg_last4"),
     "kp_frozen_128": ("kp_frozen at 128 px crops (MoveNet below its native 192)", "config"),
