@@ -49,6 +49,7 @@ ROWS = {  # name: (what it is, checkpoint or config)
                      "config"),
     "kpimg_last4": ("kpimg_frozen's recipe with the last 4 trunk blocks, the pyramid and the heads trained at 0.1x "
                     "the rate", "config"),
+    "kp_frozen_long": ("kp_frozen trained for 800 more steps (1600 in all; train.init, the schedule restarted)", "config"),
     "wise_last4": ("WiSE-FT: the weights of kpimg_frozen and kpimg_last4 averaged half and half (same start, same seed)",
                    "wise:kpimg_frozen:kpimg_last4"),
     "kp_frozen_128": ("kp_frozen at 128 px crops (MoveNet below its native 192)", "config"),

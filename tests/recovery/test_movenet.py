@@ -321,3 +321,27 @@ def test_which_blocks_train_does_not_make_another_network() -> None:
     b = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=4))
     c = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints+pooled", train_blocks=4))
     assert a.model_hash() == b.model_hash() != c.model_hash()
+
+
+def test_movenet_rows_share_one_budget_and_data() -> None:
+    """Every trained row of benchmarks/movenet_rows.py has a config that parses, 800 steps of 32 on one
+    data set and one validation set (docs/transfer.md, "A backbone that reads people in photographs");
+    the one continuation (kp_frozen_long) starts from kp_frozen's network."""
+    import importlib.util
+    from pathlib import Path
+
+    from recovery.config import load_config
+
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("movenet_rows", root / "benchmarks/movenet_rows.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    trained = [n for n, (_, src) in mod.ROWS.items() if src == "config"]
+    assert {"kp_frozen", "kpimg_frozen", "pooled_frozen"} <= set(trained)
+    ref = load_config(root / "configs/recovery/movenet/kp_frozen.yaml")
+    for name in trained:
+        cfg = load_config(root / f"configs/recovery/movenet/{name}.yaml")
+        assert (cfg.train.steps, cfg.train.batch_size) == (800, 32), name
+        assert (cfg.data.train, cfg.data.val, cfg.data.effects) == (ref.data.train, ref.data.val, ref.data.effects), name
+        assert cfg.model.backbone.startswith("movenet_"), name
+        assert cfg.train.init == ("out/movenet/runs/kp_frozen/last.pt" if name == "kp_frozen_long" else ""), name
