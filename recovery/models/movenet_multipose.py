@@ -49,13 +49,9 @@ from torch import nn
 from recovery.models.backbones.movenet import (
     _GRAPH_PREFIX,
     STRIDE,
-    TAPS,
     WEIGHTS_DIR,
-    InvertedResidual,
+    MoveNetLayers,
     MoveNetVariant,
-    SameConv,
-    SeparableConv,
-    _up,
     graph_node_map,
 )
 
@@ -153,30 +149,14 @@ def decode_multipose(maps: MultiPoseMaps, max_people: int = MAX_PEOPLE) -> Multi
                            centers=top)
 
 
-class MoveNetMultiPose(nn.Module):
+class MoveNetMultiPose(MoveNetLayers, nn.Module):
     """MoveNet MultiPose Lightning (module docstring): :meth:`run` gives the heads, :meth:`forward` the
     decoded people of normalised images (B, 3, H, W), H and W multiples of 32."""
 
     def __init__(self) -> None:
         super().__init__()
         self.name = VARIANT.name
-        stem, spec = VARIANT.trunk()
-        self.stem = SameConv(3, stem, 3, 2)
-        blocks, cin, taps = [], stem, {}
-        for i, (t, c, s) in enumerate(spec):
-            blocks.append(InvertedResidual(cin, t, c, s))
-            cin = c
-            if i in TAPS:
-                taps[TAPS[i]] = c
-        self.blocks = nn.ModuleList(blocks)
-        self.head_conv = SameConv(cin, 1280, 1)
-        self.fpn_top = SameConv(1280, 64, 1)
-        self.lateral16, self.lateral8 = SameConv(taps["c16"], 64, 1), SameConv(taps["c8"], 32, 1)
-        self.lateral4 = SameConv(taps["c4"], 24, 1)
-        self.smooth16, self.smooth8 = SeparableConv(64, 32), SeparableConv(32, 24)
-        self.smooth4 = SeparableConv(24, 24)
-        self.heads = nn.ModuleDict({k: nn.Sequential(SeparableConv(24, 96), SameConv(96, n, 1))
-                                    for k, n in HEADS.items()})
+        self._build_layers(VARIANT, HEADS)
 
     @staticmethod
     def normalize(images: torch.Tensor) -> torch.Tensor:
@@ -190,19 +170,7 @@ class MoveNetMultiPose(nn.Module):
         if images.shape[-2] % 32 or images.shape[-1] % 32:
             raise ValueError(f"{self.name}: height and width must be multiples of 32, "
                              f"got {tuple(images.shape[-2:])}")
-        x = F.relu6(self.stem(images))
-        feats = {}
-        for i, blk in enumerate(self.blocks):
-            x = blk(x)
-            if i in TAPS:
-                feats[TAPS[i]] = x
-        c32 = F.relu6(self.head_conv(x))
-        l16 = self.lateral16(feats["c16"])
-        p = self.smooth16(_up(self.fpn_top(c32), l16) + l16)
-        l8 = self.lateral8(feats["c8"])
-        p = self.smooth8(_up(p, l8) + l8)
-        l4 = self.lateral4(feats["c4"])
-        p4 = self.smooth4(_up(p, l4) + l4)
+        p4 = self.pyramid(*self.trunk(images))
         return MultiPoseMaps(**{k: head(p4) for k, head in self.heads.items()})
 
     def forward(self, images: torch.Tensor) -> MultiPoseOutput:

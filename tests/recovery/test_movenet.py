@@ -24,15 +24,43 @@ from recovery.models.backbones.tfjs import read_graph_model, write_graph_model
 # scores). Lightning at 192 px, Thunder at 256 px. Rows: COCO order; x, y, score.
 ASTRONAUT = {
     "movenet_lightning": [
-        [83.24, 45.48, 0.58], [92.46, 37.93, 0.73], [76.49, 37.05, 0.74], [103.51, 43.17, 0.49], [65.97, 41.62, 0.74],
-        [119.22, 101.73, 0.61], [40.86, 95.99, 0.64], [120.27, 149.20, 0.19], [22.77, 153.80, 0.42],
-        [102.34, 180.57, 0.31], [53.31, 182.79, 0.25], [92.43, 187.97, 0.44], [47.93, 188.10, 0.36],
-        [120.39, 190.18, 0.05], [23.89, 186.61, 0.02], [93.06, 188.73, 0.09], [61.49, 188.45, 0.10]],
+        [83.24, 45.48, 0.58],
+        [92.46, 37.93, 0.73],
+        [76.49, 37.05, 0.74],
+        [103.51, 43.17, 0.49],
+        [65.97, 41.62, 0.74],
+        [119.22, 101.73, 0.61],
+        [40.86, 95.99, 0.64],
+        [120.27, 149.20, 0.19],
+        [22.77, 153.80, 0.42],
+        [102.34, 180.57, 0.31],
+        [53.31, 182.79, 0.25],
+        [92.43, 187.97, 0.44],
+        [47.93, 188.10, 0.36],
+        [120.39, 190.18, 0.05],
+        [23.89, 186.61, 0.02],
+        [93.06, 188.73, 0.09],
+        [61.49, 188.45, 0.10],
+    ],
     "movenet_thunder": [
-        [112.00, 61.53, 0.60], [123.43, 51.19, 0.63], [102.20, 50.80, 0.84], [136.93, 58.82, 0.74], [88.25, 55.29, 0.58],
-        [158.64, 138.01, 0.83], [51.83, 133.65, 0.76], [162.66, 203.45, 0.18], [32.56, 210.10, 0.55],
-        [146.95, 248.52, 0.17], [70.80, 246.19, 0.43], [131.87, 253.16, 0.27], [78.78, 253.41, 0.31],
-        [136.97, 220.16, 0.00], [58.46, 235.34, 0.01], [111.50, 260.06, 0.01], [81.10, 258.41, 0.02]],
+        [112.00, 61.53, 0.60],
+        [123.43, 51.19, 0.63],
+        [102.20, 50.80, 0.84],
+        [136.93, 58.82, 0.74],
+        [88.25, 55.29, 0.58],
+        [158.64, 138.01, 0.83],
+        [51.83, 133.65, 0.76],
+        [162.66, 203.45, 0.18],
+        [32.56, 210.10, 0.55],
+        [146.95, 248.52, 0.17],
+        [70.80, 246.19, 0.43],
+        [131.87, 253.16, 0.27],
+        [78.78, 253.41, 0.31],
+        [136.97, 220.16, 0.00],
+        [58.46, 235.34, 0.01],
+        [111.50, 260.06, 0.01],
+        [81.10, 258.41, 0.02],
+    ],
 }
 # Drawn by hand on the 512 px photograph: her face, and where her shoulders are.
 FACE_BOX = (180, 60, 290, 160)
@@ -80,9 +108,14 @@ def test_converted_movenet_finds_the_astronaut(name: str) -> None:
 
 def test_graph_model_reader_round_trip_and_truncation(tmp_path) -> None:
     rng = np.random.default_rng(0)
-    weights = {"a/kernel": rng.normal(size=(3, 3, 4, 8)).astype(np.float32), "b/bias": rng.normal(size=(8,)).astype(np.float32),
-               "shape": np.array([1, -1, 17], np.int32)}
-    path = write_graph_model(tmp_path / "m.json", weights, nodes=[{"name": "x", "op": "Placeholder", "attr": {}}])
+    weights = {
+        "a/kernel": rng.normal(size=(3, 3, 4, 8)).astype(np.float32),
+        "b/bias": rng.normal(size=(8,)).astype(np.float32),
+        "shape": np.array([1, -1, 17], np.int32),
+    }
+    path = write_graph_model(
+        tmp_path / "m.json", weights, nodes=[{"name": "x", "op": "Placeholder", "attr": {}}]
+    )
     g = read_graph_model(path)
     assert list(g.weights) == list(weights)
     for k, v in weights.items():
@@ -108,12 +141,33 @@ def _fake_graph(net: MoveNet, name: str, tmp_path) -> tuple:
     import base64
 
     state = net.state_dict()
-    nodes, weights = [{"name": "input", "op": "Placeholder",
-                       "attr": {"shape": {"shape": {"dim": [{"size": "1"}, {"size": str(net.input_size)},
-                                                             {"size": str(net.input_size)}, {"size": "3"}]}}}}], {}
+    nodes, weights = (
+        [
+            {
+                "name": "input",
+                "op": "Placeholder",
+                "attr": {
+                    "shape": {
+                        "shape": {
+                            "dim": [
+                                {"size": "1"},
+                                {"size": str(net.input_size)},
+                                {"size": str(net.input_size)},
+                                {"size": "3"},
+                            ]
+                        }
+                    }
+                },
+            }
+        ],
+        {},
+    )
     for path, (node, act, stride) in graph_node_map(name).items():
-        full = ("StatefulPartitionedCall/" if node.startswith("kpt") or node.startswith("center") else
-                "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/") + node
+        full = (
+            "StatefulPartitionedCall/"
+            if node.startswith("kpt") or node.startswith("center")
+            else "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/"
+        ) + node
         w = state[path + ".weight"]
         depthwise = w.shape[1] == 1 and w.shape[0] > 1 and w.shape[-1] == 3
         weights[full + "/k"] = (w.permute(2, 3, 0, 1) if depthwise else w.permute(2, 3, 1, 0)).numpy()
@@ -122,13 +176,26 @@ def _fake_graph(net: MoveNet, name: str, tmp_path) -> tuple:
             weights[full + "/b"] = state[path + ".bias"].numpy()
             inputs.append(full + "/b")
         fused = ["BiasAdd"] + ([act] if act else [])
-        nodes.append({"name": full, "op": "FusedDepthwiseConv2dNative" if depthwise else "_FusedConv2D", "input": inputs,
-                      "attr": {"strides": {"list": {"i": ["1", str(stride), str(stride), "1"]}},
-                               "fused_ops": {"list": {"s": [base64.b64encode(f.encode()).decode() for f in fused]}}}})
+        nodes.append(
+            {
+                "name": full,
+                "op": "FusedDepthwiseConv2dNative" if depthwise else "_FusedConv2D",
+                "input": inputs,
+                "attr": {
+                    "strides": {"list": {"i": ["1", str(stride), str(stride), "1"]}},
+                    "fused_ops": {"list": {"s": [base64.b64encode(f.encode()).decode() for f in fused]}},
+                },
+            }
+        )
     h = net.input_size // 4
-    weights["ConstantFolding/StatefulPartitionedCall/truediv_2_recip"] = MoveNet.center_prior(h, h)[..., None].numpy()
-    for k, v in {"Reshape": np.zeros((1, 1, 1, 3)), "truediv": np.full((1, 1, 1, 3), 1 / 127.5),
-                 "Reshape_13": np.full((1, 1, 1, 2), 1 / h)}.items():
+    weights["ConstantFolding/StatefulPartitionedCall/truediv_2_recip"] = MoveNet.center_prior(h, h)[
+        ..., None
+    ].numpy()
+    for k, v in {
+        "Reshape": np.zeros((1, 1, 1, 3)),
+        "truediv": np.full((1, 1, 1, 3), 1 / 127.5),
+        "Reshape_13": np.full((1, 1, 1, 2), 1 / h),
+    }.items():
         weights["StatefulPartitionedCall/" + k] = v.astype(np.float32)
     for i in (3, 4):
         weights[f"StatefulPartitionedCall/strided_slice_{i}"] = np.zeros((h, h, 1), np.float32)
@@ -153,7 +220,9 @@ def test_graph_to_module_conversion_round_trip(tmp_path) -> None:
         state_dict_from_graph(read_graph_model(write_graph_model(tmp_path / "bad.json", weights, bad)), name)
     extra = {**weights, "StatefulPartitionedCall/stray/kernel": np.ones((2, 2), np.float32)}
     with pytest.raises(ValueError, match="not used"):
-        state_dict_from_graph(read_graph_model(write_graph_model(tmp_path / "extra.json", extra, nodes)), name)
+        state_dict_from_graph(
+            read_graph_model(write_graph_model(tmp_path / "extra.json", extra, nodes)), name
+        )
     with pytest.raises(ValueError, match="input"):
         state_dict_from_graph(read_graph_model(path), "movenet_thunder")
 
@@ -254,28 +323,50 @@ def test_movenet_head_settings_are_checked_and_old_networks_keep_their_hash() ->
     # networks described before these settings keep their hash (values computed at a4b2525, before them),
     # so their checkpoints still resume and initialise runs
     cfg = load_config("configs/recovery/hmr_blsm_lite0.yaml")
-    assert cfg.model_hash() == "e2bf21368736ed1d" and load_config("configs/recovery/tiny.yaml").model_hash() == "fedb502731cb44db"
+    assert (
+        cfg.model_hash() == "e2bf21368736ed1d"
+        and load_config("configs/recovery/tiny.yaml").model_hash() == "fedb502731cb44db"
+    )
     assert "head_input" not in cfg.to_dict()["model"]
     kp = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints"))
     assert kp.to_dict()["model"]["head_input"] == "keypoints" and kp.model_hash() != cfg.model_hash()
 
 
 def test_tiny_movenet_run_trains_and_predicts(tmp_path, fake_root, train_cache) -> None:
+    from recovery_helpers import train_config, write_config
+
     from recovery import trainer
     from recovery.config import load_config
     from recovery.predictor import load_predictor
     from recovery.train import train
-    from recovery_helpers import train_config, write_config
 
-    cfg = train_config(fake_root, train_cache, model={"backbone": "movenet_lightning", "pretrained": True, "hidden": 32,
-                                                       "head_input": "keypoints+pooled", "image_dropout": 0.3,
-                                                       "train_blocks": 0},
-                       train={"steps": 2, "batch_size": 4, "val_every": 100, "checkpoint_every": 100, "log_every": 1,
-                              "device": "cpu"})
+    cfg = train_config(
+        fake_root,
+        train_cache,
+        model={
+            "backbone": "movenet_lightning",
+            "pretrained": True,
+            "hidden": 32,
+            "head_input": "keypoints+pooled",
+            "image_dropout": 0.3,
+            "train_blocks": 0,
+        },
+        train={
+            "steps": 2,
+            "batch_size": 4,
+            "val_every": 100,
+            "checkpoint_every": 100,
+            "log_every": 1,
+            "device": "cpu",
+        },
+    )
     mp = pytest.MonkeyPatch()
     mp.setattr(trainer, "plot_curves", lambda *a, **k: None)
     try:
-        assert train(load_config(write_config(tmp_path / "c.yaml", cfg)), tmp_path / "run", log=lambda *a: None) == "done"
+        assert (
+            train(load_config(write_config(tmp_path / "c.yaml", cfg)), tmp_path / "run", log=lambda *a: None)
+            == "done"
+        )
     finally:
         mp.undo()
     pr = load_predictor(tmp_path / "run" / "last.pt")
@@ -284,7 +375,9 @@ def test_tiny_movenet_run_trains_and_predicts(tmp_path, fake_root, train_cache) 
     ref = build_backbone("movenet_lightning", pretrained=True).state_dict()
     got = pr.model.backbone.state_dict()
     assert all(torch.equal(got[k].float(), ref[k].float()) for k in ref)
-    res = pr(torch.rand(2, 3, 32, 32), torch.eye(3).expand(2, 3, 3) * torch.tensor([40.0, 40.0, 1.0])[:, None])
+    res = pr(
+        torch.rand(2, 3, 32, 32), torch.eye(3).expand(2, 3, 3) * torch.tensor([40.0, 40.0, 1.0])[:, None]
+    )
     assert torch.isfinite(res.vertices).all() and res.keypoints_2d.shape[0] == 2
 
 
@@ -298,28 +391,53 @@ def test_fit_brings_the_projection_onto_the_keypoints_and_keeps_unsure_people(mo
     ids = [model.keypoint_names.index(n) for n in COCO_KEYPOINTS]
     k = torch.tensor([[400.0, 0, 96], [0, 400.0, 96], [0, 0, 1]]).expand(b, 3, 3)
     nb, ns = model.num_bone_coeffs, model.num_shape_coeffs
-    truth = HMROutput(pose=torch.randn(b, 47) * 0.5, orient=UPRIGHT_FACING_CAMERA.expand(b, 3, 3), bone=torch.zeros(b, nb),
-                      shape=torch.zeros(b, ns), cam=torch.tensor([[0.9, 0.0, 0.05]]).expand(b, 3), thetas=torch.zeros(1, b, 1))
+    truth = HMROutput(
+        pose=torch.randn(b, 47) * 0.5,
+        orient=UPRIGHT_FACING_CAMERA.expand(b, 3, 3),
+        bone=torch.zeros(b, nb),
+        shape=torch.zeros(b, ns),
+        cam=torch.tensor([[0.9, 0.0, 0.05]]).expand(b, 3),
+        thetas=torch.zeros(1, b, 1),
+    )
     target = predict_body(model, truth, k, crop, torch.tensor(ids)).keypoints_2d
     conf = torch.full((b, 17, 1), 0.9)
     conf[2] = 0.1  # a person MoveNet is unsure of: kept as predicted
-    start = HMROutput(pose=truth.pose + 0.4 * torch.randn(b, 47), orient=truth.orient, bone=truth.bone, shape=truth.shape,
-                      cam=truth.cam + torch.tensor([0.05, 0.03, -0.02]), thetas=truth.thetas)
-    fitted = fit_to_keypoints(model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=60))
-    err = lambda o: (predict_body(model, o, k, crop, torch.tensor(ids)).keypoints_2d - target).norm(dim=-1).mean(-1)  # noqa: E731
+    start = HMROutput(
+        pose=truth.pose + 0.4 * torch.randn(b, 47),
+        orient=truth.orient,
+        bone=truth.bone,
+        shape=truth.shape,
+        cam=truth.cam + torch.tensor([0.05, 0.03, -0.02]),
+        thetas=truth.thetas,
+    )
+    fitted = fit_to_keypoints(
+        model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=60)
+    )
+    err = lambda o: (
+        (predict_body(model, o, k, crop, torch.tensor(ids)).keypoints_2d - target).norm(dim=-1).mean(-1)
+    )  # noqa: E731
     before, after = err(start), err(fitted)
     assert (after[:2] < 0.5 * before[:2]).all(), (before, after)
     assert torch.equal(fitted.pose[2], start.pose[2]) and torch.equal(fitted.cam[2], start.cam[2])
     assert fitted.bone is start.bone and fitted.shape is start.shape
-    assert fit_to_keypoints(model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=0)) is start
+    assert (
+        fit_to_keypoints(model, start, k, crop, torch.cat([target, conf], -1), ids, FitSettings(iterations=0))
+        is start
+    )
 
 
 def test_which_blocks_train_does_not_make_another_network() -> None:
     from recovery.config import ModelConfig, RecoveryConfig
 
-    a = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=0))
-    b = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=4))
-    c = RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", head_input="keypoints+pooled", train_blocks=4))
+    a = RecoveryConfig(
+        model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=0)
+    )
+    b = RecoveryConfig(
+        model=ModelConfig(backbone="movenet_lightning", head_input="keypoints", train_blocks=4)
+    )
+    c = RecoveryConfig(
+        model=ModelConfig(backbone="movenet_lightning", head_input="keypoints+pooled", train_blocks=4)
+    )
     assert a.model_hash() == b.model_hash() != c.model_hash()
 
 
@@ -342,6 +460,12 @@ def test_movenet_rows_share_one_budget_and_data() -> None:
     for name in trained:
         cfg = load_config(root / f"configs/recovery/movenet/{name}.yaml")
         assert (cfg.train.steps, cfg.train.batch_size) == (800, 32), name
-        assert (cfg.data.train, cfg.data.val, cfg.data.effects) == (ref.data.train, ref.data.val, ref.data.effects), name
+        assert (cfg.data.train, cfg.data.val, cfg.data.effects) == (
+            ref.data.train,
+            ref.data.val,
+            ref.data.effects,
+        ), name
         assert cfg.model.backbone.startswith("movenet_"), name
-        assert cfg.train.init == ("out/movenet/runs/kp_frozen/last.pt" if name == "kp_frozen_long" else ""), name
+        assert cfg.train.init == ("out/movenet/runs/kp_frozen/last.pt" if name == "kp_frozen_long" else ""), (
+            name
+        )

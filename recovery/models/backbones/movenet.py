@@ -41,9 +41,25 @@ from torch import nn
 
 from recovery.models.backbones.base import Backbone
 
-COCO_KEYPOINTS = ("nose", "left_eye", "right_eye", "left_ear", "right_ear", "left_shoulder", "right_shoulder",
-                  "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_hip", "right_hip", "left_knee",
-                  "right_knee", "left_ankle", "right_ankle")
+COCO_KEYPOINTS = (
+    "nose",
+    "left_eye",
+    "right_eye",
+    "left_ear",
+    "right_ear",
+    "left_shoulder",
+    "right_shoulder",
+    "left_elbow",
+    "right_elbow",
+    "left_wrist",
+    "right_wrist",
+    "left_hip",
+    "right_hip",
+    "left_knee",
+    "right_knee",
+    "left_ankle",
+    "right_ankle",
+)
 """MoveNet's keypoint order (COCO's)."""
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "weights" / "movenet"
@@ -66,8 +82,15 @@ class MoveNetVariant:
 
     def trunk(self) -> tuple[int, list[tuple[int, int, int]]]:
         """The stem's width and MobileNetV2's 17 blocks as (expansion, output channels, stride)."""
-        spec = [(1, 16, 1, 1), (6, 24, 2, 2), (6, 32, 3, 2), (6, 64, 4, 2), (6, 96, 3, 1), (6, 160, 3, 2),
-                (6, 320, 1, 1)]
+        spec = [
+            (1, 16, 1, 1),
+            (6, 24, 2, 2),
+            (6, 32, 3, 2),
+            (6, 64, 4, 2),
+            (6, 96, 3, 1),
+            (6, 160, 3, 2),
+            (6, 320, 1, 1),
+        ]
         blocks = []
         for t, c, n, s in spec:
             for i in range(n):
@@ -89,7 +112,9 @@ STRIDE = 4
 class SameConv(nn.Conv2d):
     """``nn.Conv2d`` with TensorFlow's "SAME" padding (asymmetric for an even input and stride 2)."""
 
-    def __init__(self, cin: int, cout: int, k: int, stride: int = 1, groups: int = 1, bias: bool = True) -> None:
+    def __init__(
+        self, cin: int, cout: int, k: int, stride: int = 1, groups: int = 1, bias: bool = True
+    ) -> None:
         super().__init__(cin, cout, k, stride, 0, groups=groups, bias=bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -157,7 +182,56 @@ class MoveNetOutput:
     offset: torch.Tensor
 
 
-class MoveNet(Backbone):
+class MoveNetLayers:
+    """MoveNet's trunk, pyramid and heads, built into an ``nn.Module`` (a mixin shared by SinglePose,
+    :class:`MoveNet`, and MultiPose, :class:`recovery.models.movenet_multipose.MoveNetMultiPose`); the
+    attribute names are the state-dict names (``stem``, ``blocks.N``, ``head_conv``, ``fpn_top``,
+    ``lateral16`` ... ``smooth4``, ``heads.NAME``)."""
+
+    def _build_layers(self, variant: MoveNetVariant, heads: dict[str, int]) -> None:
+        stem, spec = variant.trunk()
+        self.stem = SameConv(3, stem, 3, 2)
+        blocks, cin, taps = [], stem, {}
+        for i, (t, c, s) in enumerate(spec):
+            blocks.append(InvertedResidual(cin, t, c, s))
+            cin = c
+            if i in TAPS:
+                taps[TAPS[i]] = c
+        self.blocks = nn.ModuleList(blocks)
+        self.head_conv = SameConv(cin, 1280, 1)
+        self.fpn_top = SameConv(1280, 64, 1)
+        self.lateral16, self.lateral8 = SameConv(taps["c16"], 64, 1), SameConv(taps["c8"], 32, 1)
+        self.lateral4 = SameConv(taps["c4"], 24, 1)
+        self.smooth16, self.smooth8, self.smooth4 = (
+            SeparableConv(64, 32),
+            SeparableConv(32, 24),
+            SeparableConv(24, 24),
+        )
+        self.heads = nn.ModuleDict(
+            {k: nn.Sequential(SeparableConv(24, 96), SameConv(96, n, 1)) for k, n in heads.items()}
+        )
+
+    def trunk(self, images: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Normalised images -> ``c32`` and the stride-4/8/16 taps."""
+        x = F.relu6(self.stem(images))
+        taps = {}
+        for i, b in enumerate(self.blocks):
+            x = b(x)
+            if i in TAPS:
+                taps[TAPS[i]] = x
+        return F.relu6(self.head_conv(x)), taps
+
+    def pyramid(self, c32: torch.Tensor, taps: dict[str, torch.Tensor]) -> torch.Tensor:
+        """``p4`` (B, 24, H/4, W/4) from the trunk's maps."""
+        l16 = self.lateral16(taps["c16"])
+        p = self.smooth16(_up(self.fpn_top(c32), l16) + l16)
+        l8 = self.lateral8(taps["c8"])
+        p = self.smooth8(_up(p, l8) + l8)
+        l4 = self.lateral4(taps["c4"])
+        return self.smooth4(_up(p, l4) + l4)
+
+
+class MoveNet(MoveNetLayers, Backbone):
     """MoveNet SinglePose (module docstring). ``forward`` pools ``c32`` like every backbone;
     :meth:`run` gives every map and :meth:`keypoints` decodes them.
 
@@ -171,44 +245,12 @@ class MoveNet(Backbone):
         v = VARIANTS[name]
         super().__init__(name, 1280, (0.5, 0.5, 0.5), (0.5, 0.5, 0.5), v.input_size, "_fc")
         self.variant = v
-        stem, spec = v.trunk()
-        self.stem = SameConv(3, stem, 3, 2)
-        blocks, cin, taps = [], stem, {}
-        for i, (t, c, s) in enumerate(spec):
-            blocks.append(InvertedResidual(cin, t, c, s))
-            cin = c
-            if i in TAPS:
-                taps[TAPS[i]] = c
-        self.blocks = nn.ModuleList(blocks)
-        self.head_conv = SameConv(cin, 1280, 1)
-        self.fpn_top = SameConv(1280, 64, 1)
-        self.lateral16, self.lateral8, self.lateral4 = SameConv(taps["c16"], 64, 1), SameConv(taps["c8"], 32, 1), SameConv(taps["c4"], 24, 1)
-        self.smooth16, self.smooth8, self.smooth4 = SeparableConv(64, 32), SeparableConv(32, 24), SeparableConv(24, 24)
-        self.heads = nn.ModuleDict({k: nn.Sequential(SeparableConv(24, 96), SameConv(96, n, 1)) for k, n in HEADS.items()})
+        self._build_layers(v, HEADS)
 
     # -- the network ---------------------------------------------------------------------------
-    def trunk(self, images: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Normalised images -> ``c32`` and the stride-4/8/16 taps."""
-        x = F.relu6(self.stem(images))
-        taps = {}
-        for i, b in enumerate(self.blocks):
-            x = b(x)
-            if i in TAPS:
-                taps[TAPS[i]] = x
-        return F.relu6(self.head_conv(x)), taps
-
     def forward_features(self, images: torch.Tensor) -> torch.Tensor:
         """The stride-32 trunk map (B, 1280, h, w): the pyramid and heads are skipped."""
         return self.trunk(images)[0]
-
-    def pyramid(self, c32: torch.Tensor, taps: dict[str, torch.Tensor]) -> torch.Tensor:
-        """``p4`` (B, 24, H/4, W/4) from the trunk's maps."""
-        l16 = self.lateral16(taps["c16"])
-        p = self.smooth16(_up(self.fpn_top(c32), l16) + l16)
-        l8 = self.lateral8(taps["c8"])
-        p = self.smooth8(_up(p, l8) + l8)
-        l4 = self.lateral4(taps["c4"])
-        return self.smooth4(_up(p, l4) + l4)
 
     def run(self, images: torch.Tensor) -> MoveNetOutput:
         """Every map for normalised images (B, 3, H, W), H and W multiples of 32."""
@@ -222,7 +264,9 @@ class MoveNet(Backbone):
 
     # -- decoding --------------------------------------------------------------------------------
     @staticmethod
-    def center_prior(h: int, w: int, device: torch.device | None = None, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    def center_prior(
+        h: int, w: int, device: torch.device | None = None, dtype: torch.dtype = torch.float32
+    ) -> torch.Tensor:
         """(h, w) ``1 / (d + 1.8)``, d the distance in cells from cell (h/2, w/2): MoveNet's preference
         for the person nearest the crop's centre (the graph's 48x48 constant for Lightning, exactly)."""
         y = torch.arange(h, device=device, dtype=dtype)[:, None] - h // 2
@@ -254,7 +298,11 @@ class MoveNet(Backbone):
             py = ky + off[bi[:, None], kk[None], 0, ky, kx]
             px = kx + off[bi[:, None], kk[None], 1, ky, kx]
         else:
-            dy, dx = torch.meshgrid(torch.arange(-1, 2, device=heat.device), torch.arange(-1, 2, device=heat.device), indexing="ij")
+            dy, dx = torch.meshgrid(
+                torch.arange(-1, 2, device=heat.device),
+                torch.arange(-1, 2, device=heat.device),
+                indexing="ij",
+            )
             ny = (ky[..., None] + dy.flatten()).clamp(0, h - 1)  # (B, K, 9)
             nx = (kx[..., None] + dx.flatten()).clamp(0, w - 1)
             b3, k3 = bi[:, None, None], kk[None, :, None]
@@ -262,7 +310,9 @@ class MoveNet(Backbone):
             wgt = wgt / wgt.sum(-1, keepdim=True).clamp_min(1e-8)
             py = (wgt * (ny + off[b3, k3, 0, ny, nx])).sum(-1)
             px = (wgt * (nx + off[b3, k3, 1, ny, nx])).sum(-1)
-        return torch.stack([px * STRIDE, py * STRIDE, score], -1)  # MoveNet's (k + o) / w, times the input side
+        return torch.stack(
+            [px * STRIDE, py * STRIDE, score], -1
+        )  # MoveNet's (k + o) / w, times the input side
 
 
 def movenet_weights_path(name: str) -> Path:
@@ -272,9 +322,16 @@ def movenet_weights_path(name: str) -> Path:
     return WEIGHTS_DIR / VARIANTS[name].weights
 
 
-_GRAPH_PREFIX = ("StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/", "StatefulPartitionedCall/")
-_HEAD_NODES = {"heatmap": ("kpt_heatmap_0", 4, 4, 5), "center": ("center_0", 3, 3, 4),
-               "regress": ("kpt_regress_0", 5, 5, 6), "offset": ("kpt_offset_0", 6, 6, 7)}
+_GRAPH_PREFIX = (
+    "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/",
+    "StatefulPartitionedCall/",
+)
+_HEAD_NODES = {
+    "heatmap": ("kpt_heatmap_0", 4, 4, 5),
+    "center": ("center_0", 3, 3, 4),
+    "regress": ("kpt_regress_0", 5, 5, 6),
+    "offset": ("kpt_offset_0", 6, 6, 7),
+}
 
 
 def graph_node_map(name: str) -> dict[str, tuple[str, str | None, int]]:
@@ -282,7 +339,7 @@ def graph_node_map(name: str) -> dict[str, tuple[str, str | None, int]]:
     m, f = "model_1/model/", "model_1/"
     out = {"stem": (m + "Conv1_relu/Relu6", "Relu6", 2)}
     _, spec = VARIANTS[name].trunk()
-    for i, (t, _, s) in enumerate(spec):
+    for i, (_t, _, s) in enumerate(spec):
         if i == 0:
             out["blocks.0.dw"] = (m + "expanded_conv_depthwise/depthwise", "Relu6", s)
             out["blocks.0.project"] = (m + "expanded_conv_project_BN/FusedBatchNormV3", None, 1)
@@ -324,7 +381,7 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
     for n in graph.nodes:
         for p in _GRAPH_PREFIX:
             if n["name"].startswith(p):
-                nodes[n["name"][len(p):]] = n
+                nodes[n["name"][len(p) :]] = n
                 break
     state, used = {}, set()
     for path, (node_name, act, stride) in graph_node_map(name).items():
@@ -334,7 +391,9 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
         ops = fused_ops(n)
         got = "Relu6" if "Relu6" in ops else ("Relu" if "Relu" in ops else None)
         if got != act or strides(n) != stride:
-            raise ValueError(f"{name}: node {node_name} has activation {got} and stride {strides(n)}, expected {act}, {stride}")
+            raise ValueError(
+                f"{name}: node {node_name} has activation {got} and stride {strides(n)}, expected {act}, {stride}"
+            )
         kernel = torch.from_numpy(graph.weights[n["input"][1]])
         depthwise = "Depthwise" in n["op"]
         state[path + ".weight"] = kernel.permute(2, 3, 0, 1) if depthwise else kernel.permute(3, 2, 0, 1)
@@ -344,7 +403,9 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
             used.add(n["input"][2])
     prior_name = "ConstantFolding/StatefulPartitionedCall/truediv_2_recip"
     prior = torch.from_numpy(graph.weights[prior_name])[..., 0]
-    if not torch.allclose(prior, MoveNet.center_prior(*prior.shape), atol=2e-3, rtol=2e-3):  # float16 in the file
+    if not torch.allclose(
+        prior, MoveNet.center_prior(*prior.shape), atol=2e-3, rtol=2e-3
+    ):  # float16 in the file
         raise ValueError(f"{name}: the graph's centre prior is not 1 / (d + 1.8) about cell (h/2, w/2)")
     used.add(prior_name)
     # the graph's input normalisation (x - 0) / 127.5 - 1 and its output scale 1 / h (cells to [0, 1])
@@ -352,7 +413,9 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
     for k, want in norm.items():
         got = torch.from_numpy(graph.weights["StatefulPartitionedCall/" + k])
         if not torch.allclose(got, torch.full_like(got, want), rtol=1e-3, atol=1e-6):
-            raise ValueError(f"{name}: the graph's constant {k} is {got.flatten().tolist()}, expected {want:.6g}")
+            raise ValueError(
+                f"{name}: the graph's constant {k} is {got.flatten().tolist()}, expected {want:.6g}"
+            )
         used.add("StatefulPartitionedCall/" + k)
     used.update(f"StatefulPartitionedCall/strided_slice_{i}" for i in (3, 4))  # the cell-index grids
     unused = [k for k, a in graph.weights.items() if k not in used and a.dtype.kind == "f" and a.ndim > 1]
@@ -371,7 +434,9 @@ def build_movenet(name: str, pretrained: bool = True) -> MoveNet:
     if pretrained:
         path = movenet_weights_path(name)
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: MoveNet weights missing; make them with python scripts/convert_movenet.py")
+            raise FileNotFoundError(
+                f"{path}: MoveNet weights missing; make them with python scripts/convert_movenet.py"
+            )
         state = torch.load(path, map_location="cpu", weights_only=True)
         net.load_state_dict({k: v.float() for k, v in state.items()}, strict=True)
     return net

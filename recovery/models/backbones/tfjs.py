@@ -49,7 +49,10 @@ class GraphModel:
 
 def fused_ops(node: dict[str, Any]) -> list[str]:
     """The operations fused into a ``_FusedConv2D`` node (e.g. ``["BiasAdd", "Relu6"]``)."""
-    return [base64.b64decode(s).decode() for s in node.get("attr", {}).get("fused_ops", {}).get("list", {}).get("s", [])]
+    return [
+        base64.b64decode(s).decode()
+        for s in node.get("attr", {}).get("fused_ops", {}).get("list", {}).get("s", [])
+    ]
 
 
 def strides(node: dict[str, Any]) -> int:
@@ -87,19 +90,25 @@ def read_graph_model(json_path: str | Path) -> GraphModel:
             q = (w.get("quantization") or {}).get("dtype")
             if q is None:
                 if w["dtype"] not in _PLAIN:
-                    raise ValueError(f"{json_path}: weight {w['name']} has dtype {w['dtype']!r}, not one of {sorted(_PLAIN)}")
+                    raise ValueError(
+                        f"{json_path}: weight {w['name']} has dtype {w['dtype']!r}, not one of {sorted(_PLAIN)}"
+                    )
                 dt = np.dtype(_PLAIN[w["dtype"]])
             elif q in _QUANT:
                 dt = np.dtype(_QUANT[q])
             else:
-                raise ValueError(f"{json_path}: weight {w['name']} is quantised as {q!r}, not one of {sorted(_QUANT)}")
+                raise ValueError(
+                    f"{json_path}: weight {w['name']} is quantised as {q!r}, not one of {sorted(_QUANT)}"
+                )
             if off + n * dt.itemsize > len(buf):
                 raise ValueError(f"{json_path}: its shards end inside weight {w['name']} ({len(buf)} bytes)")
             arr = np.frombuffer(buf, dtype=dt, count=n, offset=off)
             if q == "float16":
                 arr = arr.astype(np.float32)
             elif q in ("uint8", "uint16"):
-                arr = arr.astype(np.float32) * float(w["quantization"]["scale"]) + float(w["quantization"]["min"])
+                arr = arr.astype(np.float32) * float(w["quantization"]["scale"]) + float(
+                    w["quantization"]["min"]
+                )
             weights[w["name"]] = arr.reshape(shape).copy()
             quant[w["name"]] = q
             off += n * dt.itemsize
@@ -109,8 +118,12 @@ def read_graph_model(json_path: str | Path) -> GraphModel:
     return GraphModel(nodes=ops, weights=weights, quantization=quant)
 
 
-def write_graph_model(json_path: str | Path, weights: dict[str, np.ndarray], nodes: list[dict[str, Any]] | None = None,
-                      float16: bool = True) -> Path:
+def write_graph_model(
+    json_path: str | Path,
+    weights: dict[str, np.ndarray],
+    nodes: list[dict[str, Any]] | None = None,
+    float16: bool = True,
+) -> Path:
     """Write weights as a TF.js graph model (one shard ``<stem>.bin``), float tensors as float16 when
     ``float16``: the inverse of :func:`read_graph_model`, for tests and tiny fixtures."""
     json_path = Path(json_path)
@@ -133,7 +146,10 @@ def write_graph_model(json_path: str | Path, weights: dict[str, np.ndarray], nod
             raise ValueError(f"{name}: dtype {arr.dtype} cannot be written")
         entries.append(e)
     shard.write_bytes(b"".join(blobs))
-    spec = {"format": "graph-model", "modelTopology": {"node": nodes or []},
-            "weightsManifest": [{"paths": [shard.name], "weights": entries}]}
+    spec = {
+        "format": "graph-model",
+        "modelTopology": {"node": nodes or []},
+        "weightsManifest": [{"paths": [shard.name], "weights": entries}],
+    }
     json_path.write_text(json.dumps(spec))
     return json_path
