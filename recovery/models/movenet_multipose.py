@@ -47,7 +47,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from recovery.models.backbones.movenet import (
-    _GRAPH_PREFIX,
+    GRAPH_PREFIX,
     STRIDE,
     WEIGHTS_DIR,
     MoveNetLayers,
@@ -297,7 +297,7 @@ def multipose_state_dict_from_graph(graph) -> dict[str, torch.Tensor]:
                          "MultiPose's is dynamic")
     nodes = {}
     for n in graph.nodes:
-        for p in _GRAPH_PREFIX:
+        for p in GRAPH_PREFIX:
             if n["name"].startswith(p):
                 nodes[n["name"][len(p):]] = n
                 break

@@ -606,18 +606,27 @@ def _bad_image(kind: str, dst: Path) -> tuple[Path, str]:
 @pytest.mark.parametrize("kind", ["zero_byte", "random_bytes", "truncated", "folder", "huge"])
 def test_recovery_predict_bad_images(tmp_path, capsys, kind):
     image, problem = _bad_image(kind, tmp_path / "im.png")
+    if kind == "folder":  # recovery predict reads folders of images since 2026-12-06: this one is empty
+        problem = "empty folder"
     _bad_input(capsys, "recovery", ["predict", "default", str(image), "--out", str(tmp_path / "o")], tmp_path, image, problem)
 
 
 def test_recovery_predict_a_one_pixel_image(tmp_path, capsys):
-    """A 1 x 1 image is an image: predicted like any other (the crop is its padded square)."""
+    """A 1 x 1 image is an image: the detector finds nobody in it (listed, no error), and with
+    --whole it is predicted like any other (the crop is its padded square)."""
+    import json
+
     from PIL import Image
 
     image = tmp_path / "px.png"
     Image.new("RGB", (1, 1), (120, 80, 60)).save(image)
     rc, _, err = _run(capsys, "recovery", ["predict", "default", str(image), "--out", str(tmp_path / "o")])
     assert rc == 0, err
-    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["mesh.obj", "overlay.png", "params.json"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["people.json", "px_overlay.png"]
+    assert [e["people"] for e in json.loads((tmp_path / "o" / "people.json").read_text())["images"]] == [[]]
+    rc, _, err = _run(capsys, "recovery", ["predict", "default", str(image), "--whole", "--out", str(tmp_path / "w")])
+    assert rc == 0, err
+    assert sorted(p.name for p in (tmp_path / "w").iterdir()) == ["mesh.obj", "overlay.png", "params.json"]
 
 
 # A malformed training config per program: (file bytes, or None for a folder / a missing file; the problem)

@@ -322,7 +322,7 @@ def movenet_weights_path(name: str) -> Path:
     return WEIGHTS_DIR / VARIANTS[name].weights
 
 
-_GRAPH_PREFIX = (
+GRAPH_PREFIX = (
     "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/",
     "StatefulPartitionedCall/",
 )
@@ -379,7 +379,7 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
         raise ValueError(f"{name}: the graph's input is {graph.input_size()} px, not {v.input_size}")
     nodes = {}
     for n in graph.nodes:
-        for p in _GRAPH_PREFIX:
+        for p in GRAPH_PREFIX:
             if n["name"].startswith(p):
                 nodes[n["name"][len(p) :]] = n
                 break
