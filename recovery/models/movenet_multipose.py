@@ -47,11 +47,11 @@ import torch.nn.functional as F
 from torch import nn
 
 from recovery.models.backbones.movenet import (
-    GRAPH_PREFIX,
     STRIDE,
     WEIGHTS_DIR,
     MoveNetLayers,
     MoveNetVariant,
+    convolutions_from_graph,
     graph_node_map,
 )
 
@@ -289,35 +289,12 @@ def multipose_state_dict_from_graph(graph) -> dict[str, torch.Tensor]:
         ValueError: the graph is not MoveNet MultiPose (a node missing, another activation, stride,
             constant or input, unused weights).
     """
-    from recovery.models.backbones.tfjs import fused_ops, strides
 
     name = VARIANT.name
     if graph.input_size() is not None:
         raise ValueError(f"{name}: the graph's input is fixed at {graph.input_size()} px; "
                          "MultiPose's is dynamic")
-    nodes = {}
-    for n in graph.nodes:
-        for p in GRAPH_PREFIX:
-            if n["name"].startswith(p):
-                nodes[n["name"][len(p):]] = n
-                break
-    state, used = {}, set()
-    for path, (node_name, act, stride) in graph_node_map_multipose().items():
-        if node_name not in nodes:
-            raise ValueError(f"{name}: the graph has no node {node_name}")
-        n = nodes[node_name]
-        ops = fused_ops(n)
-        got = "Relu6" if "Relu6" in ops else ("Relu" if "Relu" in ops else None)
-        if got != act or strides(n) != stride:
-            raise ValueError(f"{name}: node {node_name} has activation {got} and stride {strides(n)}, "
-                             f"expected {act}, {stride}")
-        kernel = torch.from_numpy(graph.weights[n["input"][1]])
-        depthwise = "Depthwise" in n["op"]
-        state[path + ".weight"] = kernel.permute(2, 3, 0, 1) if depthwise else kernel.permute(3, 2, 0, 1)
-        used.add(n["input"][1])
-        if len(n["input"]) > 2:
-            state[path + ".bias"] = torch.from_numpy(graph.weights[n["input"][2]])
-            used.add(n["input"][2])
+    state, used = convolutions_from_graph(graph, graph_node_map_multipose(), name)
     norm = {"Reshape": 0.0, "truediv": 1 / 127.5, "sub_1/y": 1.0}  # (x - 0) * (1 / 127.5) - 1
     for k, want in norm.items():
         got = torch.from_numpy(graph.weights["StatefulPartitionedCall/" + k])

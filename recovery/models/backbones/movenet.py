@@ -361,22 +361,14 @@ def graph_node_map(name: str) -> dict[str, tuple[str, str | None, int]]:
     return out
 
 
-def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
-    """This module's state dict from a MoveNet TF.js graph model (:func:`recovery.models.backbones.tfjs.
-    read_graph_model`): HWIO kernels to OIHW, depthwise ``[kh, kw, C, 1]`` to ``[C, 1, kh, kw]``.
-
-    Every convolution's fused activation and stride are checked against this module's, every weight of
-    the graph must be used, and the graph's centre prior must equal :meth:`MoveNet.center_prior`.
-
-    Raises:
-        ValueError: the graph is not this variant's MoveNet (a node missing, another activation, stride
-            or input size, unused weights).
-    """
+def convolutions_from_graph(graph, node_map: dict[str, tuple[str, str | None, int]], name: str
+                            ) -> tuple[dict[str, torch.Tensor], set[str]]:
+    """The convolutions of a MoveNet TF.js graph as this module's tensors: ``node_map`` (module path ->
+    node name without its prefix, fused activation, stride; :func:`graph_node_map`) is checked node by
+    node; HWIO kernels become OIHW, depthwise ``[kh, kw, C, 1]`` become ``[C, 1, kh, kw]``. Returns the
+    tensors and the names of the graph weights used. ``name`` names the network in errors."""
     from recovery.models.backbones.tfjs import fused_ops, strides
 
-    v = VARIANTS[name]
-    if graph.input_size() != v.input_size:
-        raise ValueError(f"{name}: the graph's input is {graph.input_size()} px, not {v.input_size}")
     nodes = {}
     for n in graph.nodes:
         for p in GRAPH_PREFIX:
@@ -384,7 +376,7 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
                 nodes[n["name"][len(p) :]] = n
                 break
     state, used = {}, set()
-    for path, (node_name, act, stride) in graph_node_map(name).items():
+    for path, (node_name, act, stride) in node_map.items():
         if node_name not in nodes:
             raise ValueError(f"{name}: the graph has no node {node_name}")
         n = nodes[node_name]
@@ -401,6 +393,25 @@ def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
         if len(n["input"]) > 2:
             state[path + ".bias"] = torch.from_numpy(graph.weights[n["input"][2]])
             used.add(n["input"][2])
+    return state, used
+
+
+def state_dict_from_graph(graph, name: str) -> dict[str, torch.Tensor]:
+    """This module's state dict from a MoveNet TF.js graph model (:func:`recovery.models.backbones.tfjs.
+    read_graph_model`): HWIO kernels to OIHW, depthwise ``[kh, kw, C, 1]`` to ``[C, 1, kh, kw]``.
+
+    Every convolution's fused activation and stride are checked against this module's, every weight of
+    the graph must be used, and the graph's centre prior must equal :meth:`MoveNet.center_prior`.
+
+    Raises:
+        ValueError: the graph is not this variant's MoveNet (a node missing, another activation, stride
+            or input size, unused weights).
+    """
+
+    v = VARIANTS[name]
+    if graph.input_size() != v.input_size:
+        raise ValueError(f"{name}: the graph's input is {graph.input_size()} px, not {v.input_size}")
+    state, used = convolutions_from_graph(graph, graph_node_map(name), name)
     prior_name = "ConstantFolding/StatefulPartitionedCall/truediv_2_recip"
     prior = torch.from_numpy(graph.weights[prior_name])[..., 0]
     if not torch.allclose(
