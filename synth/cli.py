@@ -21,10 +21,18 @@ from pathlib import Path
 
 
 def _generate(args: argparse.Namespace) -> int:
+    if sys.stderr.isatty():  # someone is watching: a line before torch, Mitsuba and BLSM load (seconds)
+        from synth.progress import log  # light
+
+        log(f"{args.out}: loading the generator and checking "
+            f"{'the embedded defaults' if args.config == '-' else args.config}")
     from synth.config import GeneratorConfig, load_config
     from synth.generate import generate
 
     cfg = load_config(args.config, args.set or ()) if args.config != "-" or args.set else GeneratorConfig()
+    if args.num is not None and args.num < 1:
+        what = f"sequences of {cfg.sequence.frames} frames" if cfg.sequence.enabled else "images"
+        raise ValueError(f"--num: the number of {what} this config makes must be positive, got {args.num}")
     if args.num is not None:
         cfg = dataclasses.replace(cfg, num=args.num)
     if args.skip_bad:
@@ -97,7 +105,8 @@ def main(argv: list[str] | None = None) -> int:
     g = sub.add_parser("generate", help="render a dataset from a config")
     g.add_argument("config", help="configs/synth/*.yaml, or - for the embedded defaults")
     g.add_argument("--out", required=True, type=Path)
-    g.add_argument("--num", type=int, help="number of images (overrides the config)")
+    g.add_argument("--num", type=int, help="how many to make (overrides the config's num): images, or sequences "
+                   "with a config whose sequence.enabled is true (each of sequence.frames frames)")
     g.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override one config key, VALUE in YAML (repeatable; e.g. --set hair.enabled=false)")
     g.add_argument("--workers", type=int, default=1)
@@ -136,8 +145,6 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--overwrite", action="store_true")
     e.set_defaults(run=_export)
     args = parser.parse_args(argv)
-    if getattr(args, "num", None) is not None and args.num < 1:
-        parser.error(f"--num must be positive, got {args.num}")
     if getattr(args, "workers", 1) < 1:
         parser.error(f"--workers must be positive, got {args.workers}")
     try:

@@ -185,11 +185,20 @@ class PosesConfig:
 @dataclass(frozen=True)
 class PeopleConfig:
     """How many people per image (uniform in [min, max]) and the gap (metres) kept between their
-    footprints, so that they never interpenetrate."""
+    footprints, so that they never interpenetrate.
+
+    ``distinct``: whether the people of one image (or clip) are different subjects. ``null``
+    (default): they are whenever the subject pool holds ``max`` subjects; with fewer, a subject
+    repeats only once every subject is in the image, and the run says so in one line before it
+    starts. ``true``: they must be; a pool smaller than ``max`` is an error before any work.
+    ``false``: subjects are drawn with replacement (twins possible), as before this key: the images
+    of a dataset made before it (:func:`synth.sample.draw_subject`; the manifest holds the key, so
+    ``--resume`` into such a dataset is refused all the same)."""
 
     min: int = 1
     max: int = 1
     gap: float = 0.1
+    distinct: bool | None = None
 
     def __post_init__(self) -> None:
         if not 1 <= self.min <= self.max <= 8:
@@ -546,10 +555,12 @@ class GeneratorConfig:
             raise ValueError("labels.topology needs a posable pipeline (rigged or blsm), not raw")
         if self.seed < 0:
             raise ValueError(f"seed must be non-negative, got {self.seed}")
+        what = "sequences" if self.sequence.enabled else "images"  # what num counts
         if self.num < 1:
-            raise ValueError(f"num must be positive, got {self.num}")
+            raise ValueError(f"num (the number of {what}) must be positive, got {self.num}")
         if self.num > MAX_SAMPLES:
-            raise ValueError(f"num must be at most {MAX_SAMPLES} (sample keys have nine digits), got {self.num}")
+            raise ValueError(f"num (the number of {what}) must be at most {MAX_SAMPLES} (sample keys have nine "
+                             f"digits), got {self.num}")
         if self.pipeline not in ("rigged", "raw", "blsm"):
             raise ValueError(f"pipeline must be rigged, raw or blsm, got {self.pipeline!r}")
         if (self.poses.seated_rate or self.poses.arms_rate) and self.pipeline == "raw":

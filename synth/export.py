@@ -16,8 +16,12 @@ subtract 0.5 where a tool puts pixel centres at integers.
 ``imgname``       (N,) str        ``images/<key>.png``, relative to ``OUT``
 ``center``        (N, 2)          centre of the visible ``box`` (``box_full`` when none), pixels
 ``scale``         (N,)            ``scale_factor * max(w, h) / 200``: SPIN's preprocessing (1.2 box)
-``part``          (N, 24, 3)      SPIN's 24 keypoints (:data:`SPIN_KEYPOINTS`): x, y, visibility;
-                                  keypoints we do not have are 0 with visibility 0
+``part``          (N, 24, 3)      SPIN's 24 keypoints (:data:`SPIN_KEYPOINTS`): x, y and SPIN's
+                                  confidence: 1 for every keypoint inside the image, occluded or not
+                                  (SPIN's COCO preprocessing: v > 0), 0 outside; keypoints we do
+                                  not have are 0 with confidence 0
+``visible``       (N, 24) bool    the keypoint is inside the image and seen (not occluded by the
+                                  person or anything else; :mod:`synth.format`)
 ``S``             (N, 24, 4)      the same keypoints in camera metres (not centred) and confidence
 ``pose``          (N, 47)         BLSM unconstrained pose x; ``angles`` (N, 47) radians
 ``bone``          (N, Kb)         bone coefficients; ``shape`` (N, Ks) shape coefficients
@@ -157,19 +161,23 @@ def _spin_row(
     meta: dict[str, Any], q: dict[str, Any], names: list[str], scale_factor: float
 ) -> dict[str, Any]:
     kp2, kp3 = np.asarray(q["keypoints_2d"], np.float64), np.asarray(q["keypoints_3d_cam"], np.float64)
-    vis = sample_format.seen_keypoints(q)
-    part, s3 = np.zeros((24, 3)), np.zeros((24, 4))
+    seen, in_frame = sample_format.seen_keypoints(q), np.asarray(q["in_frame"], bool)
+    part, s3, visible = np.zeros((24, 3)), np.zeros((24, 4)), np.zeros(24, bool)
     for j, (_, ours) in enumerate(SPIN_KEYPOINTS):
         if ours is not None and ours in names:
             k = names.index(ours)
-            part[j] = [*kp2[k], float(vis[k])]
+            # SPIN's convention (its COCO preprocessing: COCO v > 0): 1 for every joint labelled in the
+            # image, occluded or not; whether it is seen is kept apart, in ``visible``.
+            part[j] = [*kp2[k], float(in_frame[k])]
             s3[j] = [*kp3[k], 1.0]
+            visible[j] = seen[k]
     x0, y0, x1, y1 = sample_format.person_box(q)
     b = q["blsm"]
     return {
         "center": [(x0 + x1) / 2, (y0 + y1) / 2],
         "scale": scale_factor * max(x1 - x0, y1 - y0) / 200.0,
         "part": part,
+        "visible": visible,
         "S": s3,
         "pose": b["pose"],
         "angles": b["angles"],
@@ -308,6 +316,7 @@ def export(
     for name in ("center", "scale", "part", "S", "pose", "angles", "bone", "shape", "transl_cam", "K"):
         arrays[name] = np.array([r[name] for r in rows], dtype=np.float64)
     orient = np.array([r["global_orient"] for r in rows], np.float64)
+    arrays["visible"] = np.array([r["visible"] for r in rows], bool).reshape(len(rows), 24)
     arrays["global_orient"] = _camera_orient(orient, np.array([r["R"] for r in rows], np.float64))
     arrays["has_smpl"] = np.zeros(len(rows), np.float64)
     arrays["has_blsm"] = np.ones(len(rows), np.float64)

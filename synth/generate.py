@@ -39,7 +39,7 @@ from synth import lock as out_lock
 from synth import worker
 from synth.config import GeneratorConfig
 from synth.progress import Progress, log
-from synth.sample import SUBJECTS, PoseSource
+from synth.sample import SUBJECTS, PoseSource, subject_pool_warning
 from synth.shards import ShardWriter, SkipSample, WriteError
 from synth.subjects import anny_subject, load_subject, model_fingerprint, save_subject
 
@@ -93,8 +93,9 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
                  "population": json.loads(json.dumps(asdict(cfg.subjects.population())))}  # as stored (lists)
         if cfg.subjects.detail:  # stamped only when on, so folders made before the key stay valid
             stamp["detail"] = True
-        for i in range(cfg.subjects.count):
-            path = folder / f"anny_{i:04d}.npz"
+        n = cfg.subjects.count
+        paths = [folder / f"anny_{i:04d}.npz" for i in range(n)]
+        for path in paths:  # every subject already made is checked before any is made
             if path.exists():  # written atomically, so complete: a damaged one is an error
                 had = load_subject(path).meta.get("made_with")
                 if had != stamp:
@@ -103,15 +104,18 @@ def prepare_subjects(cfg: GeneratorConfig, out: Path, model: Any) -> list[Path]:
                         k for k in keys if had.get(k) != stamp.get(k)) + " differs"
                     raise ValueError(f"{path}: subject made with other settings ({what}); "
                                      "remove the dataset's subjects folder or use another --out")
-                paths.append(path)
-                continue
+        todo = [i for i, path in enumerate(paths) if not path.exists()]
+        if todo:  # the slow step before the first image: said before it starts
+            log(f"making {len(todo)} of {n} subjects in {folder} (Anny bodies registered to BLSM and textured, "
+                "15-50 s each; about 80 s more once per machine while Anny compiles its kernels)")
+        for i in todo:
             t0 = time.time()
-            s = anny_subject(model, path.stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size,
+            s = anny_subject(model, paths[i].stem, subject_rng(cfg.seed, i), cfg.subjects.texture_size,
                              cfg.subjects.population(), detail=cfg.subjects.detail, detail_seed=cfg.seed)
             s.meta["made_with"] = stamp
-            save_subject(s, path)
-            log(f"subject {path.stem}: height {s.meta['height_m']:.2f} m, fit {s.meta['registration']['fit_mean_mm']:.1f} mm ({time.time() - t0:.0f} s)")
-            paths.append(path)
+            save_subject(s, paths[i])
+            log(f"subject {i + 1}/{n} {paths[i].stem}: height {s.meta['height_m']:.2f} m, "
+                f"fit {s.meta['registration']['fit_mean_mm']:.1f} mm ({time.time() - t0:.0f} s)")
     else:
         from synth.scans import import_scans
 
@@ -333,7 +337,9 @@ def merge(out: str | Path) -> dict[str, Any]:
 def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
     """Open and check every input file of a run before any work: the pose source (for sequences, clips
     long enough), every background file (decoded as the workers will) and every scan folder; a
-    ValueError names the first bad one."""
+    ValueError names the first bad one. Then the subject pool against ``people.max``
+    (:func:`synth.sample.subject_pool_warning`): one line when it is smaller, an error when
+    ``people.distinct`` is true."""
     poses = PoseSource(cfg)
     if cfg.sequence.enabled:
         from synth.sequence import eligible_clips
@@ -346,10 +352,15 @@ def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
         bg.check_files(bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude), b.kind, b.env_width)
         if b.align_horizon:
             bg.read_horizons(b.folder)  # a bad plates.json is an error before any work
+    pool = cfg.subjects.count
     if cfg.subjects.source == "folder":
-        from synth.scans import check_scans
+        from synth.scans import check_scans, subject_folders
 
-        check_scans(model, Path(cfg.subjects.folder), skip_bad=cfg.skip_bad)
+        scans = Path(cfg.subjects.folder)
+        pool = len(subject_folders(scans)) - len(check_scans(model, scans, skip_bad=cfg.skip_bad))
+    warning = subject_pool_warning(cfg, pool)  # once a run, before any work; an error with people.distinct
+    if warning:
+        log(warning)
 
 
 def _first_missing(path: Path) -> Path | None:
@@ -451,6 +462,8 @@ def cfg_json(cfg: GeneratorConfig) -> dict:
         d.pop("sequence")
     if not cfg.labels.topology:  # no second topology: the manifests of before
         d.pop("labels")
+    if cfg.people.max == 1 and cfg.people.distinct is None:  # one person an image: drawn as before the key
+        d["people"].pop("distinct")
     b = cfg.background
     if b.kind != "images" or not bg.read_horizons(b.folder):
         d["background"].pop("align_horizon")

@@ -2,9 +2,9 @@
 
 A worker's :class:`SampleMaker` makes any sample from ``(seed, index)`` alone, in this order:
 
-1. **People.** Each draws a subject and a pose (:class:`PoseSource`: the pose prior or the motion
-   library) and is posed (:func:`pose_person`, which ``synth validate`` uses to rebuild the same
-   meshes) into a :class:`Person`.
+1. **People.** Each draws a subject not yet in the image (:func:`draw_subject`) and a pose
+   (:class:`PoseSource`: the pose prior or the motion library) and is posed (:func:`pose_person`,
+   which ``synth validate`` uses to rebuild the same meshes) into a :class:`Person`.
 2. **Placement** (:func:`place_people`): footprint discs ``people.gap`` apart, feet on the ground.
 3. **Camera and background** (:func:`synth.camera.sample_camera`, :mod:`synth.backgrounds`).
 4. **Render and labels** (:meth:`SampleMaker.render_frame`): the people's scene
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -240,6 +241,11 @@ class PoseSource:
         the library for a clip it does not hold, or for none left."""
         from blsm.mocap.library import list_clips, load_clip
 
+        if not Path(self.cfg.library).is_dir():
+            raise ValueError(
+                f"{self.cfg.library}: no motion library (poses.library) there; make it with `make motions` "
+                "or set poses.library to a folder written by `blsm mocap import`"
+            )
         files = list_clips(self.cfg.library)
         names = {Path(f).stem for f in files}
         unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips, *self.cfg.child_clips) if n not in names]
@@ -283,6 +289,43 @@ class PoseSource:
             f"{self.prior_path}: no plausible pose in {self.cfg.max_redraws + 1} draws "
             "(a prior of implausible poses; set poses.plausible: false to use it as drawn)"
         )
+
+
+def draw_subject(
+    rng: np.random.Generator, pool: int, taken: Sequence[int], distinct: bool | None = None
+) -> int:
+    """The subject (an index into a pool of ``pool``) of the next person of an image or clip whose
+    people so far have subjects ``taken``.
+
+    Without replacement (``distinct`` None or True, :class:`synth.config.PeopleConfig`): a subject
+    already in the image is drawn again, so the result is uniform over the others and an image whose
+    people were distinct under the draw with replacement keeps its draws, and every later draw of its
+    ``rng``. Once all ``pool`` subjects are in the image (more people than subjects) the pool starts
+    afresh. ``distinct`` False: one draw with replacement, as before the key.
+    """
+    si = int(rng.integers(pool))
+    if distinct is False:
+        return si
+    this_round = set(taken[len(taken) - len(taken) % pool :])  # the people since the pool last started afresh
+    while si in this_round:
+        si = int(rng.integers(pool))
+    return si
+
+
+def subject_pool_warning(cfg: GeneratorConfig, pool: int) -> str | None:
+    """What a run of ``cfg`` with ``pool`` subjects says before it starts: a one-line warning when
+    the pool is smaller than ``people.max`` (a subject repeats in an image), else None; a ValueError
+    when ``people.distinct`` is true and the pool cannot give ``people.max`` different subjects."""
+    p = cfg.people
+    if pool >= p.max or p.distinct is False:
+        return None
+    src = "subjects.count" if cfg.subjects.source == "anny" else f"the usable scans in {cfg.subjects.folder}"
+    subjects = f"{pool} subjects" if pool > 1 else "1 subject"
+    what = f"people.max = {p.max} but there {'are' if pool > 1 else 'is'} {subjects} ({src})"
+    if p.distinct:
+        raise ValueError(f"people.distinct is true and {what}; add subjects or lower people.max")
+    return (f"warning: {what}, so images with more people than that show a subject twice "
+            "(people.distinct: true makes this an error)")
 
 
 def footprint(outline: np.ndarray) -> tuple[np.ndarray, float]:
@@ -454,7 +497,9 @@ class SampleMaker:
         """Sample ``index``'s fields, from ``rng`` (:func:`synth.shards.sample_rng`) alone."""
         cfg = self.cfg
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
-        people = [self.draw_person(rng) for _ in range(n)]
+        people: list[Person] = []
+        for _ in range(n):
+            people.append(self.draw_person(rng, [p.si for p in people]))
         for p in people:
             v = p.shell()
             p.outline = v[outline_index(v)]
@@ -474,9 +519,10 @@ class SampleMaker:
         frame, labels = self.render_frame(index, people, camera, cam_info, back, rng, occluders)
         return self.encode(index, camera, cam_info, back, people, frame, labels, extra)
 
-    def draw_person(self, rng: np.random.Generator) -> Person:
-        """A subject drawn and posed by the pose source (at the origin, before placement)."""
-        si = int(rng.integers(len(self.subjects)))
+    def draw_person(self, rng: np.random.Generator, taken: Sequence[int] = ()) -> Person:
+        """A subject drawn (:func:`draw_subject`, the image's people so far having subjects ``taken``)
+        and posed by the pose source (at the origin, before placement)."""
+        si = draw_subject(rng, len(self.subjects), taken, self.cfg.people.distinct)
         s = self.subjects[si]
         age = s.meta.get("phenotype", {}).get("age_years")
         x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0)

@@ -3,8 +3,9 @@
 A sequence of ``T`` frames at ``F`` fps (``sequence.frames``, ``sequence.fps``) is made by one worker
 from its own random generator (:func:`sequence_rng`), in this order:
 
-1. **People.** Each draws a subject, a motion-library clip (children: ``poses.child_clips`` when set)
-   and a window of it without a cut (:func:`clip_segments`: a root or joint-angle jump), a heading (yaw about +Y, uniform) and
+1. **People.** Each draws a subject not yet in the clip (:func:`synth.sample.draw_subject`), a
+   motion-library clip (children: ``poses.child_clips`` when set) and a window of it without a cut
+   (:func:`clip_segments`: a root or joint-angle jump), a heading (yaw about +Y, uniform) and
    plays the window from its start: the pose is interpolated between the clip's frames (a
    Catmull-Rom spline through the joint angles, kept inside their limits, and the root translation,
    so velocities are continuous; spherically in the root orientation).
@@ -52,7 +53,7 @@ import numpy as np
 
 from synth.camera import outline_index
 from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
-from synth.sample import Person, footprint
+from synth.sample import Person, draw_subject, footprint
 
 CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
@@ -321,12 +322,14 @@ class SequenceMaker:
         )
 
     # -- people
-    def _person(self, rng: np.random.Generator) -> Actor:
-        """One person's clip, posed on the frame grid (module docstring, steps 1-2)."""
+    def _person(self, rng: np.random.Generator, taken: list[int]) -> Actor:
+        """One person's clip, posed on the frame grid (module docstring, steps 1-2); its subject is
+        drawn (:func:`synth.sample.draw_subject`) and appended to ``taken``, the clip's so far."""
         from scipy.spatial.transform import Rotation
 
         m = self.m
-        si = int(rng.integers(len(m.subjects)))
+        si = draw_subject(rng, len(m.subjects), taken, m.cfg.people.distinct)
+        taken.append(si)
         age = m.subjects[si].meta.get("phenotype", {}).get("age_years")
         child = age is not None and age < 18.0 and self.child_eligible
         win = draw_window(m.poses.clips, self.child_eligible if child else self.eligible, self.needed, rng, self.limits)
@@ -397,7 +400,8 @@ class SequenceMaker:
         """The ``T`` frames of sequence ``seq``: each frame's fields, in order."""
         m, cfg, T, F = self.m, self.m.cfg, self.T, self.F
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
-        people = [self._person(rng) for _ in range(n)]
+        taken: list[int] = []
+        people = [self._person(rng, taken) for _ in range(n)]
         footprints = []
         for p in people:
             rows = []

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -94,6 +95,11 @@ def add_parsers(sub: Any) -> None:
                      "the detector's names mapped onto the model's keypoints)")
     reg.add_argument("--sequence", action="store_true", help="the scans (or the folder's scans, sorted by "
                      "name) are frames of one subject: one bone and shape, poses smoothed in time (Eq. 6.4)")
+    reg.add_argument("--fps", type=float, default=None,
+                     help="--sequence: frames per second of the frames as given (each next frame 1/FPS s "
+                     "later; e.g. 7.5 for every 4th frame of a 30 fps clip), so that the smoothing follows "
+                     "their spacing in time (default: the keypoint config's fps, else the scans' own times "
+                     "where they carry them, else 15)")
     reg.set_defaults(func=command("register", cmd_register))
 
     learn = sub.add_parser(
@@ -214,6 +220,10 @@ def cmd_register(args: argparse.Namespace) -> int:
         raise ValueError(f"--batch must be >= 1, got {args.batch}")
     if args.landmark_detector is not None and args.detector != "landmarks":
         raise ValueError(f"{args.landmark_detector}: --landmark-detector needs --detector landmarks")
+    if args.fps is not None and not args.sequence:
+        raise ValueError("--fps sets the spacing of --sequence frames; add --sequence")
+    if args.fps is not None and not (args.fps > 0 and math.isfinite(args.fps)):
+        raise ValueError(f"--fps must be a positive number of frames per second, got {args.fps}")
     paths = [q for p in args.scans for q in (_scan_files(p) if p.is_dir() else [p])]
     jobs = []
     for p in paths:
@@ -321,6 +331,12 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
                 "swapped_views": int(k.per_view.swapped.sum()), "keypoint_views": k.num_views.tolist()}))
     scans = [s for s, _, _ in jobs]
     kcfg = load_keypoint_config(args.keypoint_config) if args.keypoint_config is not None else None
+    if args.fps is not None:
+        import dataclasses
+
+        from blsm.learn.keypoint_fit import KeypointFitConfig
+
+        kcfg = dataclasses.replace(kcfg or KeypointFitConfig(), fps=args.fps)
     kps = regressor if sel is None else None
     if args.sequence:
         regs = register_keypoints(model, scans, targets, cfg, kcfg, sequence=True, selection=sel, keypoints=kps)

@@ -9,11 +9,12 @@
    with A_kp a :class:`KeypointSet` (the model's keypoints, some joints and some surface points, or
    the scan landmarks of :mod:`blsm.learn.landmark_fit`), per-keypoint confidences cf and the
    Geman-McClure function rho (scale ``robust_scale``), so that a wrong detection (a left/right swap)
-   does not pull the body. S is the temporal smoothing of a sequence: squared second differences
-   (accelerations) of the posed joints (metres) and of the angles, and squared first differences of
-   the joints; zero for a single frame. Initialisation: Kabsch of the trunk keypoints onto the rest
-   model's, and the same turned by pi about the body's vertical axis (facing ambiguity), each
-   followed by ``trial_iterations`` L-BFGS steps; the better start per frame is kept.
+   does not pull the body. S is the temporal smoothing of a sequence (:func:`smoothing`): squared
+   accelerations of the posed joints (m/s^2) and of the angles (rad/s^2), and squared velocities of
+   the joints (m/s), finite differences over the frames' times (:func:`frame_times`), so that frames
+   far apart in time are smoothed less; zero for a single frame. Initialisation: Kabsch of the trunk
+   keypoints onto the rest model's, and the same turned by pi about the body's vertical axis (facing
+   ambiguity), each followed by ``trial_iterations`` L-BFGS steps; the better start per frame is kept.
 2. :func:`fit_shape` (Eqs. 6.5-6.6): the shape coefficients c_s (shared per subject) jointly with c_b
    and theta_t on mutual nearest neighbours (Eq. 5.16, :func:`blsm.learn.surface_fit.mutual_nearest_neighbours`)
    between the posed model and ``scan_samples`` points of each scan, plus ``lambda_kp`` times the
@@ -49,8 +50,10 @@ __all__ = [
     "KeypointSet",
     "fit_keypoints",
     "fit_shape",
+    "frame_times",
     "geman_mcclure",
     "load_keypoint_config",
+    "outlier_frames",
     "smoothing",
 ]
 
@@ -64,6 +67,16 @@ TRUNK_KEYPOINTS: tuple[str, ...] = (
 # Geman-McClure scales (metres) of the facing trials and the first rounds of Eq. 6.4, before
 # ``robust_scale``.
 ANNEAL: tuple[float, ...] = (0.3, 0.1)
+
+# Frame rate (frames per second) at which the smoothing weights were set (a 15 fps walk,
+# docs/markerless.md), and assumed for a sequence whose frame times are unknown: at this spacing S is
+# what it was with weights on per-frame differences.
+REFERENCE_FPS: float = 15.0
+
+# A frame of a sequence is reported when its keypoint error is over OUTLIER_FACTOR times the median
+# of its sequence and over OUTLIER_FLOOR metres (:func:`outlier_frames`).
+OUTLIER_FACTOR: float = 2.0
+OUTLIER_FLOOR: float = 0.01
 
 
 @dataclass
@@ -79,13 +92,20 @@ class KeypointFitConfig:
         angle_prior: weight (m^2 per rad^2) of mean(theta^2) (as ``RegisterConfig.angle_prior``).
         bone_prior: weight (m^2) of mean(c_b^2) (coefficients in standard deviations).
         shape_prior: weight (m^2) of mean(c_s^2).
-        smooth_accel: weight of the mean squared second difference of the posed joints (S of Eq. 6.4).
-            Small: the robust keypoint term is bounded (sigma^2 per keypoint) and the smoothing is not,
-            so at 1.0 fast frames of a 15 fps walk drifted 5-8 cm off their keypoints.
-        smooth_velocity: weight of the mean squared first difference of the posed joints (0: it
+        smooth_accel: weight (s^4) of the mean squared acceleration of the posed joints, (m/s^2)^2
+            (S of Eq. 6.4, :func:`smoothing`). 0.1 / 15^4: at 15 fps the 0.1 per squared second
+            difference (metres) it was set at until 2026-12-06 (weights on per-frame differences,
+            whatever the frames' spacing, over-smoothed frames 4 clip frames apart: issue 53). Small:
+            the robust keypoint term is bounded (sigma^2 per keypoint) and the smoothing is not, so at
+            10 times this (1.0 per squared second difference) fast frames of a 15 fps walk drifted 5-8 cm
+            off their keypoints.
+        smooth_velocity: weight (s^2) of the mean squared velocity of the posed joints, (m/s)^2 (0: it
             would slow down any motion).
-        smooth_angle_accel: weight (m^2 per rad^2) of the mean squared second difference of the angles
-            (the joints do not see twists).
+        smooth_angle_accel: weight (m^2 s^4 per rad^2) of the mean squared angular acceleration,
+            (rad/s^2)^2 (the joints do not see twists); 1e-4 / 15^4, as ``smooth_accel``.
+        fps: frame rate of a sequence's frames as given, frames per second: each next frame 1 / fps
+            seconds later (``blsm register --fps``). 0: the scans' own times where they carry them
+            (:func:`frame_times`), else ``REFERENCE_FPS`` (15).
         surface_rounds, surface_iterations: ICP rounds and L-BFGS iterations per round of Eq. 6.5.
             96 x 60 (6 x 15 until 2026-11-28, far from converged; 48 x 60 until 2026-12-01): chosen
             on a validation population of stand-in scans (docs/markerless.md, "Eq. 6.5 run to
@@ -115,9 +135,10 @@ class KeypointFitConfig:
     angle_prior: float = 1e-5
     bone_prior: float = 1e-5
     shape_prior: float = 1e-5
-    smooth_accel: float = 0.1
+    smooth_accel: float = 0.1 / REFERENCE_FPS**4
     smooth_velocity: float = 0.0
-    smooth_angle_accel: float = 1e-4
+    smooth_angle_accel: float = 1e-4 / REFERENCE_FPS**4
+    fps: float = 0.0
     surface_rounds: int = 96
     surface_iterations: int = 60
     lambda_kp: float = 0.1
@@ -205,29 +226,122 @@ def geman_mcclure(d2: torch.Tensor, scale: float) -> torch.Tensor:
 
 
 def smoothing(joints: torch.Tensor, angles: torch.Tensor, groups: torch.Tensor,
-              cfg: KeypointFitConfig) -> torch.Tensor:
+              cfg: KeypointFitConfig, times: torch.Tensor | None = None) -> torch.Tensor:
     """S of Eqs. 6.4-6.5: temporal smoothness of consecutive frames of the same group (sequence).
+
+    Physical rates from finite differences over the frames' times: with h1 = t_i - t_{i-1} and
+    h2 = t_{i+1} - t_i, the acceleration at frame i is
+    ``2 (h1 (J_{i+1} - J_i) - h2 (J_i - J_{i-1})) / (h1 h2 (h1 + h2))`` (``(J_{i+1} - 2 J_i +
+    J_{i-1}) / h^2`` for equal spacing) and the velocity between two frames ``(J_i - J_{i-1}) / h``.
+    One term per frame triple (pair), as the data term is one per frame: the same motion costs the
+    same per frame whether it is sampled at 30 fps or every 4th frame of it, instead of 4^4 = 256
+    times more at the wider spacing.
 
     Args:
         joints: (T, J, 3) posed joints, metres. angles: (T, D) radians.
         groups: (T,) long, the sequence of each frame; differences never straddle two groups.
-        cfg: the weights.
+        cfg: the weights (``smooth_accel``, ``smooth_velocity``, ``smooth_angle_accel``).
+        times: (T,) seconds, increasing within a group (None: frames ``1 / REFERENCE_FPS`` apart).
 
     Returns:
-        () sum over frames of mean squared accelerations (weights ``smooth_accel``,
-        ``smooth_angle_accel``) and velocities (``smooth_velocity``); 0 for fewer than 2 frames.
+        () sum over frame triples of ``smooth_accel`` times the mean squared joint acceleration,
+        (m/s^2)^2, plus ``smooth_angle_accel`` times the mean squared angular acceleration,
+        (rad/s^2)^2, and over frame pairs ``smooth_velocity`` times the mean squared joint velocity,
+        (m/s)^2; 0 for fewer than 2 frames.
     """
     out = joints.new_zeros(())
-    if joints.shape[0] >= 2 and cfg.smooth_velocity > 0:
-        same = (groups[1:] == groups[:-1]).to(joints.dtype)
-        vel = (joints[1:] - joints[:-1]).square().sum(-1).mean(-1)
-        out = out + cfg.smooth_velocity * (vel * same).sum()
-    if joints.shape[0] >= 3:
-        same = ((groups[2:] == groups[1:-1]) & (groups[1:-1] == groups[:-2])).to(joints.dtype)
-        acc = (joints[2:] - 2 * joints[1:-1] + joints[:-2]).square().sum(-1).mean(-1)
-        aacc = (angles[2:] - 2 * angles[1:-1] + angles[:-2]).square().mean(-1)
+    t_n = joints.shape[0]
+    if times is None:
+        times = torch.arange(t_n, dtype=joints.dtype) / REFERENCE_FPS
+    times = times.to(joints.dtype)
+    if times.shape != (t_n,):
+        raise ValueError(f"times must be ({t_n},), got {tuple(times.shape)}")
+    same2 = groups[1:] == groups[:-1]
+    h = times[1:] - times[:-1]  # (T-1,) seconds
+    if bool((h[same2] <= 0).any()):
+        i = int((same2 & (h <= 0)).nonzero()[0])
+        raise ValueError(f"frame times must increase within a sequence: frame {i + 1} at "
+                         f"{float(times[i + 1]):.4g} s follows {float(times[i]):.4g} s")
+    h = torch.where(same2, h, torch.ones_like(h))  # no difference straddles two groups
+    if t_n >= 2 and cfg.smooth_velocity > 0:
+        vel = ((joints[1:] - joints[:-1]) / h[:, None, None]).square().sum(-1).mean(-1)
+        out = out + cfg.smooth_velocity * (vel * same2.to(joints.dtype)).sum()
+    if t_n >= 3:
+        same = (same2[1:] & same2[:-1]).to(joints.dtype)
+        h1, h2 = h[:-1], h[1:]  # (T-2,)
+
+        def accel(x: torch.Tensor) -> torch.Tensor:
+            s = [-1] + [1] * (x.dim() - 1)
+            a, b = h1.reshape(s), h2.reshape(s)
+            return 2 * (a * (x[2:] - x[1:-1]) - b * (x[1:-1] - x[:-2])) / (a * b * (a + b))
+
+        acc = accel(joints).square().sum(-1).mean(-1)
+        aacc = accel(angles).square().mean(-1)
         out = out + ((cfg.smooth_accel * acc + cfg.smooth_angle_accel * aacc) * same).sum()
     return out
+
+
+def frame_times(metas: Sequence[dict | None], fps: float = 0.0) -> tuple[torch.Tensor | None, str]:
+    """The times of a sequence's frames for :func:`smoothing`, and where they came from.
+
+    In this order: ``fps`` > 0 (``KeypointFitConfig.fps``, ``blsm register --fps``): frame t at
+    ``t / fps``; every scan's ``meta["time"]`` (seconds, as :func:`blsm.learn.sequence_scans.make_sequence`
+    writes); every scan's ``meta["pose"]`` (the frame's index in its sequence) over ``meta["fps"]``
+    (the sequence's frame rate), both written by ``make_sequence`` before ``time`` was; else None
+    (``smoothing`` then takes the frames ``1 / REFERENCE_FPS`` apart, the behaviour before frame times).
+
+    Args:
+        metas: the scans' ``meta`` dicts (None: no meta), in frame order.
+        fps: frames per second of the frames as given, 0: unknown.
+
+    Returns:
+        ((T,) float64 seconds or None, a short phrase naming the source).
+    """
+    if fps > 0:
+        return torch.arange(len(metas), dtype=torch.float64) / fps, f"--fps / fps setting {fps:g}"
+    metas = [m or {} for m in metas]
+
+    def number(m: dict, key: str) -> float | None:
+        v = m.get(key)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
+        return float(v) if ok else None
+
+    times = [number(m, "time") for m in metas]
+    if metas and all(t is not None for t in times):
+        return torch.tensor(times, dtype=torch.float64), "the scans' meta time"
+    rates, index = [number(m, "fps") for m in metas], [number(m, "pose") for m in metas]
+    one_rate = all(r is not None and r > 0 for r in rates) and len(set(rates)) == 1
+    if metas and one_rate and all(i is not None for i in index):
+        t = torch.tensor(index, dtype=torch.float64) / rates[0]
+        return t, f"the scans' meta frame index (pose) and fps {rates[0]:g}"
+    return None, f"unknown, {REFERENCE_FPS:g} fps assumed (set --fps)"
+
+
+def outlier_frames(errors: torch.Tensor, groups: torch.Tensor, factor: float = OUTLIER_FACTOR,
+                   floor: float = OUTLIER_FLOOR) -> list[int]:
+    """Frames whose keypoint error is far above the rest of their sequence.
+
+    "Far above": over ``factor`` (2) times the median error of the frame's group and over ``floor``
+    (0.01 m, so that a sequence fitted to a few millimetres does not report 5 mm frames; the
+    over-smoothed frame of issue 53's reproduction had 13.9 mm against a median of 6.8 mm). Groups of
+    fewer than 3 frames report none (with 2 frames neither is above twice their median).
+
+    Args:
+        errors: (T,) per-frame keypoint errors, metres (``KeypointFit.keypoint_error``).
+        groups: (T,) long, the sequence of each frame.
+
+    Returns:
+        The indices of the outlying frames, increasing.
+    """
+    out = []
+    for g in groups.unique():
+        idx = (groups == g).nonzero()[:, 0]
+        if len(idx) < 3:
+            continue
+        e = errors[idx].double()
+        bad = (e > factor * e.median()) & (e > floor)
+        out += idx[bad].tolist()
+    return sorted(out)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -362,6 +476,7 @@ def fit_keypoints(
     groups: torch.Tensor | None = None,
     config: KeypointFitConfig | None = None,
     init: KeypointFit | None = None,
+    times: torch.Tensor | None = None,
 ) -> KeypointFit:
     """Eq. 6.4: bone coefficients per subject and pose per frame from 3D keypoints.
 
@@ -375,6 +490,8 @@ def fit_keypoints(
         config: settings (defaults if None).
         init: for one frame: a fit to try as a start besides the two Kabsch starts (its pose and
             rigid motion), e.g. the neighbouring frame's.
+        times: (T,) seconds of the frames for the smoothing S (:func:`smoothing`, :func:`frame_times`);
+            None: ``1 / REFERENCE_FPS`` apart.
 
     Returns:
         :class:`KeypointFit` with zero shape coefficients.
@@ -391,13 +508,16 @@ def fit_keypoints(
     groups = torch.zeros(t_n, dtype=torch.long) if groups is None else groups.long()
     if conf.shape != targets.shape[:2] or groups.shape != (t_n,):
         raise ValueError(f"confidence must be (T, K) and groups (T,), got {tuple(conf.shape)}, {tuple(groups.shape)}")
+    if times is not None and tuple(times.shape) != (t_n,):
+        raise ValueError(f"times must be (T,) = ({t_n},), got {tuple(times.shape)}")
     prob = _Problem(model, keypoints, targets, conf, groups, cfg)
     few = (prob.mask.sum(1) < 4).nonzero()
     if len(few):
         raise ValueError(f"frame {int(few[0])} has {int(prob.mask[int(few[0])].sum())} usable keypoints (need >= 4)")
     if len(groups.unique()) > 1:  # separate subjects: one problem each (a shared L-BFGS converges slower)
         parts = [(g, (groups == g).nonzero()[:, 0]) for g in groups.unique()]
-        fits = [fit_keypoints(model, keypoints, targets[i], conf[i], None, cfg) for _, i in parts]
+        fits = [fit_keypoints(model, keypoints, targets[i], conf[i], None, cfg,
+                              times=None if times is None else times[i]) for _, i in parts]
         return _concat(fits, parts, groups)
     cb = torch.zeros(1, model.num_bone_coeffs, dtype=dtype, requires_grad=True)
 
@@ -406,7 +526,7 @@ def fit_keypoints(
             kp, joints, theta, _ = prob.keypoints(cb, None, x, go, tr)
             out = prob.data(kp, scale=scale).sum()
             if with_priors:
-                out = out + prob.priors(cb, None, theta) + smoothing(joints, theta, groups, cfg)
+                out = out + prob.priors(cb, None, theta) + smoothing(joints, theta, groups, cfg, times)
             return out
 
         lbfgs([go, tr], iters_rigid, lambda: loss(False))
@@ -550,6 +670,7 @@ def fit_shape(
     confidence: torch.Tensor | None = None,
     config: KeypointFitConfig | None = None,
     log: Callable[[str], None] | None = None,
+    times: torch.Tensor | None = None,
 ) -> KeypointFit:
     """Eqs. 6.5-6.6: shape coefficients with bone coefficients and poses on the scan surface.
 
@@ -558,6 +679,7 @@ def fit_shape(
         scans: per frame the scan's (N, 3) vertices and (F, 3) faces, metres.
         start: the :func:`fit_keypoints` result of the same frames (its groups are kept).
         config: settings. log: progress lines, or None.
+        times: (T,) seconds of the frames for the smoothing S, as :func:`fit_keypoints`.
 
     Returns:
         The refined :class:`KeypointFit`.
@@ -570,8 +692,8 @@ def fit_shape(
     conf = torch.ones(targets.shape[:2], dtype=dtype) if confidence is None else confidence.to(dtype)
     if len(start.groups.unique()) > 1:  # separate subjects: one problem each
         parts = [(g, (start.groups == g).nonzero()[:, 0]) for g in start.groups.unique()]
-        fits = [fit_shape(model, keypoints, targets[i], [scans[int(t)] for t in i], _take(start, g, i), conf[i], cfg, log)
-                for g, i in parts]
+        fits = [fit_shape(model, keypoints, targets[i], [scans[int(t)] for t in i], _take(start, g, i), conf[i], cfg, log,
+                          None if times is None else times[i]) for g, i in parts]
         return _concat(fits, parts, start.groups)
     prob = _Problem(model, keypoints, targets, conf, start.groups, cfg)
     rng = np.random.default_rng(cfg.seed)
@@ -588,7 +710,8 @@ def fit_shape(
         kp, joints, theta, verts = prob.keypoints(cb, cs, x, go, tr, full=True)
         e_mnn = torch.stack([((verts[t, f] * w.to(dtype)[..., None]).sum(1) - p.to(dtype)).square().sum(-1).mean()
                              if len(p) else verts.new_zeros(()) for t, (f, w, p) in enumerate(pairs)])
-        out = (cfg.lambda_kp * prob.data(kp) + e_mnn).sum() + smoothing(joints, theta, prob.groups, cfg)
+        out = (cfg.lambda_kp * prob.data(kp) + e_mnn).sum()
+        out = out + smoothing(joints, theta, prob.groups, cfg, times)
         return out + prob.priors(cb, cs, theta)
 
     params = [cb, x, go, tr] + ([u] if model.num_shape_coeffs > 0 else [])

@@ -16,7 +16,8 @@ Eq. 6.4 (:func:`blsm.learn.keypoint_fit.fit_keypoints`), a grid search of the ha
 ``foot_search`` the ankles, are searched again around the fit), then the same free-form stage 2
 (Eqs. 5.14-5.25, used instead of Eqs. 6.8-6.9) with no landmark term, on the scan cropped to the
 fitted body. Frames of one subject (a 4D sequence) share the bone and shape coefficients and are
-smoothed in time.
+smoothed in time, over the frames' times (:func:`blsm.learn.keypoint_fit.frame_times`); a frame whose
+keypoint error is far above the rest of its sequence is reported on stderr.
 
 The settings are a :class:`blsm.learn.register_config.RegisterConfig`; the results are
 :class:`blsm.learn.registrations.Registration` records (``blsm-registration`` files).
@@ -45,11 +46,14 @@ import torch
 
 from blsm.learn.end_search import search_feet, search_hands
 from blsm.learn.keypoint_fit import (
+    REFERENCE_FPS,
     KeypointFitConfig,
     KeypointSet,
     fit_keypoints,
     fit_shape,
+    frame_times,
     near_body,
+    outlier_frames,
 )  # fmt: skip
 from blsm.learn.landmark_fit import LandmarkSelection, Stage1, default_selection, fit_landmarks
 from blsm.learn.posing import pose
@@ -301,7 +305,12 @@ def register_keypoints(
             keypoints, kept for landmarks).
         keypoint_config: settings of Eqs. 6.4-6.6.
         sequence: the scans are frames of one subject in time order: one c_b and c_s, poses smoothed
-            (Eq. 6.4's S); else every scan is its own subject.
+            (Eq. 6.4's S) over the frames' times (``keypoint_config.fps``, else the scans' meta, else
+            15 fps: :func:`blsm.learn.keypoint_fit.frame_times`); else every scan is its own subject.
+            A frame whose keypoint error after Eq. 6.4 or Eqs. 6.5-6.6 is over twice the sequence's
+            median and over 10 mm (:func:`blsm.learn.keypoint_fit.outlier_frames`) is reported in
+            one ``warning:`` line on stderr (whatever ``progress``) and marked
+            ``meta["keypoint_outlier"]``.
         selection: the targets are landmarks of this selection (A_lm), not model keypoints.
         crop_distance: stage 2 sees only scan triangles within this distance of the Eq. 6.5 body
             (metres), so that a stool or floor markers in the scan do not pull the surface.
@@ -324,25 +333,40 @@ def register_keypoints(
     if stage2_keypoints > 0 and selection is None and bool((kps.joint >= 0).any()):  # before any fitting
         raise ValueError("stage2_keypoints needs keypoints that are all surface points (a learnt A_kp)")
     groups = torch.zeros(len(scans), dtype=torch.long) if sequence else torch.arange(len(scans))
+    times, source = (None, "")
+    if sequence:
+        times, source = frame_times([getattr(s, "meta", None) for s in scans], kcfg.fps)
+    if sequence and times is not None and bool((times[1:] <= times[:-1]).any()):
+        i = int((times[1:] <= times[:-1]).nonzero()[0]) + 1
+        raise ValueError(f"{_name(scans[i], i)}: frame time {float(times[i]):.4g} s does not follow the "
+                         f"previous frame's {float(times[i - 1]):.4g} s ({source}); give the frames in time "
+                         "order")
+    if log and sequence and len(scans) > 1:
+        gaps = np.diff(times.numpy()) if times is not None else np.full(len(scans) - 1, 1 / REFERENCE_FPS)
+        log(f"temporal smoothing: frames {gaps.min():.4g}-{gaps.max():.4g} s apart ({source})")
     t0 = time.perf_counter()
-    st_kp = fit_keypoints(model, kps, pts, conf, groups, kcfg)
+    st_kp = fit_keypoints(model, kps, pts, conf, groups, kcfg, times=times)
     t1 = time.perf_counter()
     if log:
         log(f"Eq. 6.4: {len(scans)} frames, keypoint rms {[round(float(e) * 1000, 1) for e in st_kp.keypoint_error]} mm, "
             f"{t1 - t0:.1f} s")
+    outliers: set[int] = set()
+    _warn_outliers(scans, st_kp, "Eq. 6.4", outliers)
     raw = [(np.asarray(s.vertices, np.float64), np.asarray(s.faces, np.int64)) for s in scans]
     if selection is None:  # detector keypoints say nothing of the hands' orientation
         st_kp = search_hands(model, st_kp, raw)
     k = kcfg.hand_search_round
     if selection is None and 0 < k < kcfg.surface_rounds:  # the hands (and feet) again, on the fitted shape
-        first = fit_shape(model, kps, pts, raw, st_kp, conf, dataclasses.replace(kcfg, surface_rounds=k), log)
+        first = fit_shape(model, kps, pts, raw, st_kp, conf, dataclasses.replace(kcfg, surface_rounds=k), log,
+                          times)
         first = search_hands(model, first, raw, around=True)
         if kcfg.foot_search:
             first = search_feet(model, first, raw)
         rest = dataclasses.replace(kcfg, surface_rounds=kcfg.surface_rounds - k, seed=kcfg.seed + 1)
-        st_sh = fit_shape(model, kps, pts, raw, first, conf, rest, log)
+        st_sh = fit_shape(model, kps, pts, raw, first, conf, rest, log, times)
     else:
-        st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log)
+        st_sh = fit_shape(model, kps, pts, raw, st_kp, conf, kcfg, log, times)
+    _warn_outliers(scans, st_sh, "Eqs. 6.5-6.6", outliers)
     bodies = st_sh.vertices(model).double().numpy()
     data = [_cropped(s, bodies[n], crop_distance, kcfg.max_triangle_area) for n, s in enumerate(scans)]
     if selection is not None or stage2_keypoints > 0:  # surface points: stage 2 keeps Eq. 5.15's landmark term
@@ -372,13 +396,36 @@ def register_keypoints(
             keypoint_rms_mm=float(st_kp.keypoint_error[n]) * 1000,
             shape_keypoint_rms_mm=float(st_sh.keypoint_error[n]) * 1000,
             bone_coeffs=st_sh.bone[g].tolist(), shape_coeffs=st_sh.shape[g].tolist(),
+            keypoint_outlier=n in outliers,
             keypoint_config=dataclasses.asdict(kcfg), keypoints_info=targets[n].info,
         )
         gt = getattr(s, "gt_points", None)
         if gt is not None and np.asarray(gt).shape == (model.num_vertices, 3):
             reg.meta["keypoint_fit_error_mean_mm"] = correspondence_error(
                 Registration(st1_vertices(model, st_kp.stage1(model), n), *([np.zeros(1)] * 5)), gt)[0]
+        if times is not None:
+            reg.meta["frame_time_s"] = float(times[n])
         for k in ("stage1_landmark_rms_mm", "surface_fit_landmark_rms_mm", "landmark_rms_mm"):
             reg.meta.pop(k, None)
         regs.append(reg)
     return regs
+
+
+def _name(scan: Any, n: int) -> str:
+    """A scan's id (its meta's), else ``frame n``."""
+    return str((getattr(scan, "meta", None) or {}).get("id", f"frame {n}"))
+
+
+def _warn_outliers(scans: Sequence[Any], fit: Any, stage: str, seen: set[int]) -> None:
+    """One ``warning:`` line on stderr per frame of a sequence whose keypoint error after ``stage``
+    is far above its sequence's (:func:`blsm.learn.keypoint_fit.outlier_frames`), once per frame
+    (``seen`` collects the reported frames)."""
+    err = fit.keypoint_error
+    for n in outlier_frames(err, fit.groups):
+        if n in seen:
+            continue
+        seen.add(n)
+        med = float(err[fit.groups == fit.groups[n]].median())
+        print(f"warning: frame {n} ({_name(scans[n], n)}): keypoint rms {float(err[n]) * 1000:.1f} mm after "
+              f"{stage}, over twice the sequence's median {med * 1000:.1f} mm: a wrong fit or bad keypoints "
+              "(check the frame spacing, --fps, or register the frame alone)", file=sys.stderr, flush=True)

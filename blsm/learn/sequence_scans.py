@@ -124,7 +124,10 @@ def make_sequence(
     Args:
         out: the folder (``scans`` of the sequence, and ``sequence.json``).
         clip: a motion library clip (``.npz`` of ``blsm mocap``), its angles drive the subject.
-        frames, step, start: the clip frames ``start, start + step, ...``.
+        frames, step, start: the clip frames ``start, start + step, ...``; each scan's meta keeps its
+            time in the clip (``time``, seconds), its index in the sequence (``pose``) and the
+            sequence's frame rate (``fps``), which the temporal smoothing of ``blsm register
+            --sequence`` reads (:func:`blsm.learn.keypoint_fit.frame_times`).
         subject: subject index for :func:`blsm.learn.population.sample_subject` (with ``seed``).
         yaw: rotation of the whole sequence about Y, radians (the clip's own root motion is kept).
         artefacts: :class:`blsm.learn.population.Artefacts` (default: the population's).
@@ -189,7 +192,8 @@ def make_sequence(
         lm = landmark_points(torch.as_tensor(gt)[None]).numpy()[0]
         lm = lm + rng.normal(0.0, art.landmark_noise / np.sqrt(3.0), size=lm.shape)
         meta = {"id": f"frame_{k:04d}", "subject": f"seq{seed}_{subject:05d}", "pose": k, "split": "test",
-                "pose_source": f"{Path(clip).stem}:{idx[k]}", "sequence": Path(clip).stem, "fps": c.fps / step, "props": props}
+                "pose_source": f"{Path(clip).stem}:{idx[k]}", "sequence": Path(clip).stem, "fps": c.fps / step,
+                "time": idx[k] / c.fps, "props": props}
         scan = Scan(v, f, lm_names, lm.astype(np.float32), meta, gt.astype(np.float32),
                     ang[k].float().numpy(), orient[k].astype(np.float32), path[k].astype(np.float32),
                     heads[0, groups].astype(np.float32), col)

@@ -101,6 +101,89 @@ def test_smoothing_term():
     assert float(smoothing(j[:1], a[:1], torch.zeros(1, dtype=torch.long), cfg)) == 0.0  # T = 1: zero
 
 
+def _quadratic_motion(times: torch.Tensor):
+    """Joints (T, 2, 3) and angles (T, 4) of a motion of constant acceleration (3 m/s^2, 20 rad/s^2)."""
+    t = times.double()[:, None]
+    j = torch.stack([0.1 + 0.5 * t + 0.5 * 3.0 * t**2, 0.9 - 0.5 * 1.0 * t**2, 0.2 * t], -1)  # (T, 1, 3)
+    j = torch.cat([j, j + 0.3], 1)  # (T, 2, 3)
+    a = (0.5 * 20.0 * t**2).expand(-1, 4)  # (T, 4)
+    return j, a
+
+
+def test_smoothing_follows_frame_spacing():
+    """Issue 53: S weighs physical accelerations, so the same motion costs the same per frame triple
+    whether its frames are consecutive at 30 fps or 4 clip frames apart (7.5 fps), instead of 4^4 =
+    256 times more; at the reference 15 fps (and with no times) it is the per-frame second difference
+    weighted 0.1 (1e-4 for the angles), the term the defaults were set with."""
+    cfg = KeypointFitConfig()
+    g = torch.zeros(3, dtype=torch.long)
+    dense = torch.tensor([0.0, 1.0, 2.0]) / 30.0
+    sparse = torch.tensor([0.0, 4.0, 8.0]) / 30.0
+    s_dense = float(smoothing(*_quadratic_motion(dense), g, cfg, dense))
+    s_sparse = float(smoothing(*_quadratic_motion(sparse), g, cfg, sparse))
+    assert s_dense > 0
+    assert s_sparse == pytest.approx(s_dense, rel=1e-9)
+    # The value: weights times the mean squared physical accelerations.
+    expected = cfg.smooth_accel * (3.0**2 + 1.0**2) + cfg.smooth_angle_accel * 20.0**2  # (3, -1, 0) m/s^2
+    assert s_dense == pytest.approx(expected, rel=1e-9)
+    # Unequal spacing (frames 0, 1 and 5 of a 30 fps clip) of the same motion: the same cost.
+    uneven = torch.tensor([0.0, 1.0, 5.0]) / 30.0
+    assert float(smoothing(*_quadratic_motion(uneven), g, cfg, uneven)) == pytest.approx(s_dense, rel=1e-9)
+    # At 15 fps, and without times, the term the weights were set with (0.1 per squared metre of second
+    # difference of consecutive frames).
+    ref = torch.arange(3, dtype=torch.float64) / 15.0
+    j, a = _quadratic_motion(ref)
+    d2j = (j[2] - 2 * j[1] + j[0]).square().sum(-1).mean()
+    d2a = (a[2] - 2 * a[1] + a[0]).square().mean()
+    old = 0.1 * float(d2j) + 1e-4 * float(d2a)
+    assert float(smoothing(j, a, g, cfg, ref)) == pytest.approx(old, rel=1e-9)
+    assert float(smoothing(j, a, g, cfg)) == pytest.approx(old, rel=1e-9)
+    # Velocities by the spacing too: 4 times the spacing, the same displacement per frame: 1/16 the cost.
+    vcfg = dataclasses.replace(cfg, smooth_accel=0.0, smooth_angle_accel=0.0, smooth_velocity=1.0)
+    j = torch.zeros(2, 1, 3)
+    j[1, 0, 0] = 0.1
+    v1 = float(smoothing(j, torch.zeros(2, 1), g[:2], vcfg, dense[:2]))
+    assert v1 == pytest.approx(3.0**2)  # 0.1 m in 1/30 s: 3 m/s
+    assert float(smoothing(j, torch.zeros(2, 1), g[:2], vcfg, sparse[:2])) == pytest.approx(v1 / 16)
+    with pytest.raises(ValueError, match="increase"):
+        smoothing(j, torch.zeros(2, 1), g[:2], vcfg, torch.tensor([0.1, 0.1]))
+
+
+def test_frame_times():
+    """Times of a sequence's frames: the fps setting, else the scans' meta (time; frame index and fps),
+    else unknown (None: the reference 15 fps)."""
+    from blsm.learn.keypoint_fit import frame_times
+
+    metas = [{"id": f"frame_{k:04d}", "pose": k, "fps": 7.5} for k in range(3)]  # make_sequence's meta
+    t, src = frame_times(metas)
+    np.testing.assert_allclose(t.numpy(), [0.0, 4 / 30, 8 / 30])
+    assert "fps 7.5" in src
+    t, _ = frame_times([{"pose": k, "fps": 30.0} for k in (0, 4, 8)])  # every 4th file of a 30 fps sequence
+    np.testing.assert_allclose(t.numpy(), [0.0, 4 / 30, 8 / 30])
+    t, _ = frame_times([{"time": 1.0}, {"time": 1.5}, {"time": 2.5}])
+    np.testing.assert_allclose(t.numpy(), [1.0, 1.5, 2.5])
+    t, src = frame_times(metas, fps=10.0)  # the setting wins
+    np.testing.assert_allclose(t.numpy(), [0.0, 0.1, 0.2])
+    assert frame_times([{"pose": 0, "fps": 7.5}, {"id": "x"}, None])[0] is None  # not every scan: unknown
+    assert frame_times([{"pose": 0, "fps": 7.5}, {"pose": 1, "fps": 15.0}])[0] is None  # two rates
+    assert frame_times([{"pose": 0}, {"pose": 1}])[0] is None  # population scans: a pose index, no fps
+
+
+def test_outlier_frames():
+    """A frame is reported when its keypoint error is over twice its sequence's median and over 10 mm."""
+    from blsm.learn.keypoint_fit import outlier_frames
+
+    zero3 = torch.zeros(3, dtype=torch.long)
+    assert outlier_frames(torch.tensor([0.0062, 0.035, 0.0124]), zero3) == [1]  # issue 53's frames
+    assert outlier_frames(torch.tensor([0.001, 0.005, 0.001]), zero3) == []  # far above, but 5 mm
+    assert outlier_frames(torch.tensor([0.0065, 0.0139, 0.0068]), zero3) == [1]  # the reproduction's, before
+    assert outlier_frames(torch.tensor([0.02, 0.035, 0.025]), zero3) == []  # not twice the median
+    assert outlier_frames(torch.tensor([0.005, 0.05]), zero3[:2]) == []  # two frames: no median to beat
+    # Per group (sequence): frame 4 is far above its own group's, frame 1 is not above group 0's.
+    err = torch.tensor([0.030, 0.040, 0.035, 0.005, 0.050, 0.006, 0.005])
+    assert outlier_frames(err, torch.tensor([0, 0, 0, 1, 1, 1, 1])) == [4]
+
+
 def test_smoothing_reduces_jitter(model):
     """A noisy 4-frame sequence: Eq. 6.4 with S has smaller acceleration error than without."""
     t_n = 4

@@ -140,6 +140,53 @@ def test_cli_sequence_with_landmarks(model, selection, tmp_path, capsys):
     assert len(err) == 1 and "empty" in err[0] and "no scan files" in err[0]
 
 
+def test_cli_sequence_frame_spacing_and_outlier_warning(model, selection, tmp_path, capsys):
+    """Issue 53: the smoothing follows the frames' spacing in time (the scans' meta, or --fps), and a
+    frame whose keypoint error is far above the rest of its sequence is reported in one line with its
+    index."""
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    rng = np.random.default_rng(0)
+    for k, d in enumerate(_sequence(model, 3, selection)):
+        d["meta"].update(pose=k, fps=7.5)  # as blsm.learn.sequence_scans.make_sequence writes them
+        if k == 1:  # keypoints 5 cm off at random: no body fits them
+            d["landmarks"] = d["landmarks"] + rng.normal(0, 0.05, d["landmarks"].shape).astype(np.float32)
+        write_scan_npz(_SynthLike(d, selection), seq / f"{d['meta']['id']}.npz")
+    (tmp_path / "k.yaml").write_text(TINY_KP)
+    (tmp_path / "c.yaml").write_text("iterations: 3\nscan_samples: 2000\nmodel_samples: 1000\n")
+    args = ["register", str(seq), "--sequence", "--config", str(tmp_path / "c.yaml"),
+            "--keypoint-config", str(tmp_path / "k.yaml")]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert any("frames 0.1333-0.1333 s apart" in e and "fps 7.5" in e for e in err), err
+    warn = [e for e in err if e.startswith("warning:")]
+    assert len(warn) == 1 and "median" in warn[0]
+    assert warn[0].startswith("warning: frame 1 (frame_01): keypoint rms")
+    regs = load_registrations([tmp_path / "out"])
+    assert [r.meta["keypoint_outlier"] for r in regs] == [False, True, False]
+    assert regs[2].meta["frame_time_s"] == pytest.approx(8 / 30)
+    # --fps wins over the scans' meta.
+    assert main([*args, "--out", str(tmp_path / "out2"), "--fps", "30"]) == 0
+    assert any("frames 0.03333-0.03333 s apart" in e for e in capsys.readouterr().err.splitlines())
+    # Bad input: one line, exit 2.
+    for bad in (["--fps", "0"], ["--fps", "nan"]):
+        assert main([*args, "--out", str(tmp_path / "o3"), *bad]) == 2
+        e = capsys.readouterr().err.strip().splitlines()
+        assert len(e) == 1 and "--fps" in e[0]
+    assert main(["register", str(seq / "frame_00.npz"), "--out", str(tmp_path / "o4"), "--fps", "30"]) == 2
+    e = capsys.readouterr().err.strip().splitlines()
+    assert len(e) == 1 and "--sequence" in e[0]
+    # Frames whose times go back: one line naming the frame, before any fitting.
+    back = tmp_path / "back"
+    back.mkdir()
+    for k, d in enumerate(_sequence(model, 3, selection)):
+        d["meta"].update(pose=[0, 2, 1][k], fps=7.5)
+        write_scan_npz(_SynthLike(d, selection), back / f"{d['meta']['id']}.npz")
+    assert main(["register", str(back), "--sequence", "--out", str(tmp_path / "o5")]) == 2
+    e = capsys.readouterr().err.strip().splitlines()
+    assert len(e) == 1 and "frame_02" in e[0] and "does not follow" in e[0]
+
+
 def test_cli_markerless_errors(model, selection, tmp_path, capsys, monkeypatch):
     d = _sequence(model, 1, selection)[0]
     # No landmarks and no colours: nothing to detect keypoints on.

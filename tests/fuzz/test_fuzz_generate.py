@@ -128,7 +128,7 @@ CONFIGS = [
     ("nan", b"camera: {rare_rate: .nan}\n", "camera.rare_rate: expected a finite number"),
     ("huge_image", b"camera: {width: 100000, height: 100000}\n", "over the limit of 8192 px a side"),
     ("huge_memory", b"camera: {width: 8192, height: 8192}\nrender: {spp: 64}\n", "GiB per worker, over the limit of 32 GiB"),
-    ("huge_num", b"num: 1000000000000\n", "num must be at most 1000000000"),
+    ("huge_num", b"num: 1000000000000\n", "num (the number of images) must be at most 1000000000"),
 ]
 
 

@@ -68,13 +68,14 @@ def test_spin_export_has_the_fields_and_mapping(root, tmp_path):
     expected = people(root)
     n = len(expected)
     shapes = {
-        "imgname": (n,), "center": (n, 2), "scale": (n,), "part": (n, 24, 3), "S": (n, 24, 4),
+        "imgname": (n,), "center": (n, 2), "scale": (n,), "part": (n, 24, 3), "visible": (n, 24), "S": (n, 24, 4),
         "pose": (n, 47), "angles": (n, 47), "bone": (n, 10), "shape": (n, 64), "global_orient": (n, 3),
         "transl_cam": (n, 3), "K": (n, 3, 3), "has_smpl": (n,), "has_blsm": (n,),
     }  # fmt: skip
     assert {k: data[k].shape for k in data.files} == shapes
     assert (data["has_smpl"] == 0).all() and (data["has_blsm"] == 1).all()
     spin = [s for s, _ in SPIN_KEYPOINTS]
+    kinds: set[tuple[bool, bool]] = set()  # (inside the image, seen) of the keypoints checked
     for r, (key, _, q, meta) in enumerate(expected):
         assert data["imgname"][r] == f"images/{key}.png" and (tmp_path / "out" / data["imgname"][r]).is_file()
         names = meta["keypoint_names"]
@@ -83,13 +84,20 @@ def test_spin_export_has_the_fields_and_mapping(root, tmp_path):
         np.testing.assert_allclose(data["scale"][r], 1.2 * max(x1 - x0, y1 - y0) / 200)
         k = names.index("left_wrist")
         np.testing.assert_allclose(data["part"][r, spin.index("l_wrist"), :2], q["keypoints_2d"][k])
-        assert data["part"][r, spin.index("l_wrist"), 2] == float(q["visible"][k] and q["in_frame"][k])
+        # SPIN's confidence: 1 for every keypoint inside the image, occluded or not; ours apart.
+        for j, (_, ours) in enumerate(SPIN_KEYPOINTS):
+            if ours is not None:
+                k = names.index(ours)
+                assert data["part"][r, j, 2] == float(q["in_frame"][k]), (r, ours)
+                assert data["visible"][r, j] == bool(q["visible"][k] and q["in_frame"][k]), (r, ours)
+                kinds.add((bool(q["in_frame"][k]), bool(q["visible"][k] and q["in_frame"][k])))
         np.testing.assert_allclose(data["S"][r, spin.index("pelvis_mpii")], [*q["keypoints_3d_cam"][0], 1.0])
         np.testing.assert_allclose(data["transl_cam"][r], q["keypoints_3d_cam"][0])
         assert (data["part"][r, spin.index("thorax_mpii")] == 0).all() and data["S"][
             r, spin.index("jaw_h36m"), 3
         ] == 0
         np.testing.assert_allclose(data["pose"][r], q["blsm"]["pose"])
+    assert (data["visible"].dtype == bool) and {(True, True), (True, False)} <= kinds, kinds  # seen and occluded
     # global_orient is in the camera frame: R @ R_global.
     from kornia.geometry.conversions import axis_angle_to_rotation_matrix as aa2m
 
@@ -114,6 +122,7 @@ def test_coco_export_has_keypoints_boxes_and_masks(root, tmp_path):
     assert len(doc["annotations"]) == len(expected)
     index = DatasetIndex(root)
     keys = [k for _, k, _ in index.samples]
+    vs: set[int] = set()
     for ann, (key, p, q, meta) in zip(doc["annotations"], expected, strict=True):
         assert ann["image_id"] == meta["index"] and ann["iscrowd"] == 0 and ann["category_id"] == 1
         kp = np.asarray(ann["keypoints"], float).reshape(17, 3)
@@ -122,12 +131,14 @@ def test_coco_export_has_keypoints_boxes_and_masks(root, tmp_path):
             k = names.index(n)
             v = 2 if q["visible"][k] and q["in_frame"][k] else 1 if q["in_frame"][k] else 0
             assert kp[j, 2] == v
+            vs.add(v)
             np.testing.assert_allclose(kp[j, :2], q["keypoints_2d"][k] if v else [0, 0])
         assert ann["num_keypoints"] == int((kp[:, 2] > 0).sum())
         x0, y0, x1, y1 = q["box"]
         assert ann["bbox"] == [x0, y0, x1 - x0, y1 - y0] and ann["area"] == q["pixels"]
         mask = fmt.decode_png(index.read(keys.index(key), ["mask.png"])["mask.png"])
         np.testing.assert_array_equal(rle_decode(ann["segmentation"]), mask == p + 1)
+    assert {1, 2} <= vs, vs  # the fixture has seen and occluded keypoints in the image
 
 
 def test_export_refuses_to_overwrite_and_bad_input_is_one_line(root, tmp_path, capsys):

@@ -1,17 +1,24 @@
 """A worker's sample maker (synth/sample.py): posing as validate rebuilds it, placement, kernels
-compiled once per worker, the people's window, midpoint subdivision."""
+compiled once per worker, the people's window, midpoint subdivision, distinct people in an image."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
-from tiny_run import TINY
+from tiny_run import TINY, drawing_maker, drawn
 
 from synth import format as fmt
-from synth.config import RenderConfig
+from synth.config import GeneratorConfig, PeopleConfig, RenderConfig
 from synth.sample import Person, SampleMaker, place_people, pose_person, subdivide
+from synth.shards import sample_rng
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -154,3 +161,77 @@ def test_subdivision_keeps_each_child_inside_its_parent():
             e1, e2 = tri[1] - tri[0], tri[2] - tri[0]
             b = np.linalg.lstsq(np.stack([e1, e2], 1), centroid - tri[0], rcond=None)[0]
             assert b.min() >= 0 and b.sum() <= 1
+
+
+def test_the_people_of_one_image_are_distinct_subjects(tiny):
+    """Issue 53: with a pool of 8 subjects, the two or three people of an image are as many
+    subjects (drawn without replacement), and a sample's draw is still its ``(seed, index)``'s."""
+    cfg = dataclasses.replace(TINY, people=PeopleConfig(min=2, max=3))
+    m = drawing_maker(cfg, tiny, pool=8)
+    draws = [drawn(m.make, i, sample_rng(cfg.seed, i)) for i in range(48)]
+    twins = {i: d for i, d in enumerate(draws) if len(set(d)) < len(d)}
+    assert twins == {}, f"the same subject twice in one image: {twins}"
+    assert {len(d) for d in draws} == {2, 3} and {s for d in draws for s in d} == set(range(8))
+    again = drawing_maker(cfg, tiny, pool=8)
+    assert [drawn(again.make, i, sample_rng(cfg.seed, i)) for i in (30, 5)] == [draws[30], draws[5]]
+
+
+def test_distinct_draws_change_only_the_images_that_had_a_twin(tiny):
+    """``people.distinct: false`` draws with replacement, as before the key; the default redraws
+    only a repeated subject, so an image whose people were distinct before is drawn as before."""
+    cfg = dataclasses.replace(TINY, people=PeopleConfig(min=2, max=3, distinct=False))
+    old = [drawn(drawing_maker(cfg, tiny, pool=8).make, i, sample_rng(cfg.seed, i)) for i in range(24)]
+    new_maker = drawing_maker(dataclasses.replace(cfg, people=PeopleConfig(min=2, max=3)), tiny, pool=8)
+    new = [drawn(new_maker.make, i, sample_rng(cfg.seed, i)) for i in range(24)]
+    had_twin = [len(set(d)) < len(d) for d in old]
+    assert any(had_twin)
+    assert all(n == o for n, o, t in zip(new, old, had_twin, strict=True) if not t)
+    assert all(len(set(n)) == len(n) for n in new)
+
+
+def test_a_pool_smaller_than_the_people_warns_once_and_uses_every_subject(tiny, model, capsys):
+    """Three people from two subjects: one line before any work (not one per sample or worker), and
+    each image shows both subjects before it shows one twice."""
+    from synth.generate import check_inputs
+
+    few = dataclasses.replace(TINY, people=PeopleConfig(min=3, max=3))  # TINY has 2 subjects
+    check_inputs(few, model)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "people.max = 3" in err[0] and "2 subjects" in err[0], err
+    check_inputs(TINY, model)  # 2 subjects for at most 2 people: nothing to say
+    assert capsys.readouterr().err == ""
+    m = drawing_maker(few, tiny, pool=2)
+    draws = [drawn(m.make, i, sample_rng(few.seed, i)) for i in range(12)]
+    assert all(len(d) == 3 and sorted(set(d)) == [0, 1] for d in draws), draws
+
+
+def test_distinct_people_from_too_few_subjects_is_a_one_line_error_that_writes_nothing(tmp_path):
+    out = tmp_path / "o"
+    sets = ["subjects.count=2", "people.max=3", "people.distinct=true"]
+    cmd = [sys.executable, "-m", "synth.cli", "generate", "-", "--out", str(out)]
+    cmd += [x for s in sets for x in ("--set", s)]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+    assert r.stderr.startswith("synth: error: people.distinct") and "2 subjects" in r.stderr, r.stderr
+    assert "people.max = 3" in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_a_dataset_drawn_before_distinct_people_is_not_resumed_with_the_new_draws(tmp_path):
+    """The manifest records ``people.distinct`` where the draws changed (several people), so
+    ``--resume`` refuses a dataset made before it rather than mixing old and new draws; one-person
+    datasets keep the manifests of before. Workers rebuild the config from the manifest's."""
+    from synth.config import from_dict
+    from synth.generate import cfg_json, run_writer
+
+    assert "distinct" not in cfg_json(GeneratorConfig())["people"]
+    two = dataclasses.replace(TINY, people=PeopleConfig(min=1, max=2))
+    writer = run_writer(two, tmp_path)
+    before = json.loads(json.dumps(writer.manifest({})))  # as read back from a manifest of before
+    before["config"]["people"].pop("distinct")
+    with pytest.raises(ValueError, match="config differs from this run"):
+        writer.same_run(before, tmp_path / "manifest.json")
+    for people in (PeopleConfig(), PeopleConfig(distinct=True), PeopleConfig(max=2),
+                   PeopleConfig(max=2, distinct=False)):  # fmt: skip
+        cfg = dataclasses.replace(TINY, people=people)
+        assert from_dict(GeneratorConfig, cfg_json(cfg)) == cfg

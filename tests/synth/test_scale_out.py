@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -113,7 +114,7 @@ def test_parts_running_at_the_same_time_into_one_folder(config, reference, tmp_p
     procs = [subprocess.Popen([*cmd, "--part", f"{i}/2"], stderr=subprocess.PIPE, text=True) for i in (1, 2)]
     errs = [p.communicate(timeout=300)[1] for p in procs]
     assert [p.returncode for p in procs] == [0, 0], errs
-    made = [line for e in errs for line in e.splitlines() if line.startswith("[synth] subject anny_")]
+    made = [line for e in errs for line in e.splitlines() if re.match(r"\[synth\] subject \d+/2 anny_", line)]
     assert len(made) == 2, errs  # two subjects, each made once
     assert main(["merge", str(out)]) == 0
     one = _with_subjects(out, tmp_path / "one")

@@ -1,5 +1,5 @@
 """Sequences (docs/video.md): the camera paths, placement, contact, and tiny sequence datasets end to
-end (validation, labels, resume after SIGKILL mid-sequence, two workers)."""
+end (validation, labels, resume after SIGKILL mid-sequence, two workers), distinct people in a clip."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tiny_run import drawing_maker, drawn
 
 import blsm
 from blsm.mocap.library import MotionClip, save_clip
@@ -496,3 +497,22 @@ def test_a_person_wholly_behind_the_camera_has_no_box_and_loads():
     assert p["box"] is None and p["box_full"] is None and p["pixels"] == 0 and not p["in_frame"].any()
     boxes = np.array([[0, 0, 10, 10], [np.nan] * 4, [np.nan] * 4, [6, 0, 16, 10]], np.float64)
     assert np.allclose(fill_missing_boxes(boxes), [[0, 0, 10, 10], [2, 0, 12, 10], [4, 0, 14, 10], [6, 0, 16, 10]])
+
+
+def test_the_people_of_one_sequence_are_distinct_subjects(library, tiny):
+    """Issue 53: with a pool of 8 subjects the people of a clip are as many subjects, a sequence's
+    draw is still its ``(seed, sequence)``'s; with 2 subjects for 3 people, both are in every clip."""
+    from synth.sequence import SequenceMaker, sequence_rng
+
+    cfg = _cfg(library, people=PeopleConfig(min=2, max=3))
+    seqs = SequenceMaker(drawing_maker(cfg, tiny, pool=8))
+    draws = [drawn(seqs.make, s, sequence_rng(cfg.seed, s)) for s in range(32)]
+    twins = {s: d for s, d in enumerate(draws) if len(set(d)) < len(d)}
+    assert twins == {}, f"the same subject twice in one sequence: {twins}"
+    assert {len(d) for d in draws} == {2, 3}
+    again = SequenceMaker(drawing_maker(cfg, tiny, pool=8))
+    assert [drawn(again.make, s, sequence_rng(cfg.seed, s)) for s in (20, 3)] == [draws[20], draws[3]]
+    few = dataclasses.replace(cfg, people=PeopleConfig(min=3, max=3))
+    seqs = SequenceMaker(drawing_maker(few, tiny, pool=2))
+    draws = [drawn(seqs.make, s, sequence_rng(cfg.seed, s)) for s in range(8)]
+    assert all(len(d) == 3 and sorted(set(d)) == [0, 1] for d in draws), draws
