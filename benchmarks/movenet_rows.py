@@ -58,6 +58,11 @@ ROWS = {  # name: (what it is, checkpoint or config)
         "Lightning fixed, keypoints + pooled trunk (layer-normalised, half the images dropped), 192 px",
         "config",
     ),
+    "kpparts_frozen": (
+        "Lightning fixed, keypoints + a spatial head over the stride-4 map read out at each keypoint "
+        "(half the images dropped), 192 px",
+        "config",
+    ),
     "kpimg_last4": (
         "kpimg_frozen's recipe with the last 4 trunk blocks, the pyramid and the heads trained at 0.1x "
         "the rate",

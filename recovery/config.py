@@ -22,7 +22,7 @@ from synth.data import AugmentConfig
 
 BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2",
              "movenet_lightning", "movenet_thunder")
-HEAD_INPUTS = ("pooled", "keypoints", "keypoints+pooled")
+HEAD_INPUTS = ("pooled", "keypoints", "keypoints+pooled", "keypoints+parts")
 TASKS = ("hmr_blsm", "mesh", "autoencoder")
 # Settings added after the first checkpoints: stored (and compared on --resume) only when they differ
 # from their default, so that those checkpoints can still be resumed.
@@ -48,10 +48,13 @@ class ModelConfig:
             backbone's globally pooled last map (HMR); ``keypoints``, MoveNet's own 2D keypoints and
             confidences, encoded by an MLP (a lifting network); ``keypoints+pooled``, both, the pooled
             features layer-normalised, projected to the keypoints' width and dropped per image with
-            probability ``image_dropout`` so that the keypoints stay the main evidence. The last two
-            need a MoveNet backbone.
-        image_dropout: with ``keypoints+pooled``, the probability of dropping an image's whole
-            pooled-feature input in training (rescaled like dropout).
+            probability ``image_dropout`` so that the keypoints stay the main evidence;
+            ``keypoints+parts``, the keypoints and, as that secondary input, a spatial head over the
+            stride-4 pyramid map: a 3x3 convolution read out at each keypoint under MoveNet's own
+            heatmap (:class:`recovery.models.hmr.PartPool`; it trains even with ``train_blocks`` 0).
+            All but ``pooled`` need a MoveNet backbone.
+        image_dropout: with ``keypoints+pooled`` or ``keypoints+parts``, the probability of dropping
+            an image's whole secondary input in training (rescaled like dropout).
         train_blocks: which backbone weights train: -1 all; 0 none (the backbone is fixed and runs
             without gradients); N > 0 (MoveNet only) the last N trunk blocks and everything after
             them (the 1280-channel convolution, the pyramid, the heads).

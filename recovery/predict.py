@@ -107,17 +107,22 @@ def box_crop(box: tuple[float, ...] | np.ndarray) -> tuple[tuple[float, float], 
 
 
 def predict_crops(pr: Predictor, image: np.ndarray, crops: list[tuple[tuple[float, float], float]],
-                  k: np.ndarray) -> tuple[Prediction, torch.Tensor]:
+                  k: np.ndarray, guides: list[np.ndarray] | None = None) -> tuple[Prediction, torch.Tensor]:
     """Every crop (centre, side) of ``image`` through the network in one batch: the prediction and the
-    (B, 3, 3) ``K_crop``."""
+    (B, 3, 3) ``K_crop``. ``guides``: per crop, the detector's (17, 3) COCO keypoints of its person in
+    image pixels (:meth:`recovery.predictor.Predictor.__call__`), or None."""
     src = torch.from_numpy(image).permute(2, 0, 1).float() / 255.0
-    imgs, ks = [], []
-    for centre, side in crops:
+    imgs, ks, gs = [], [], []
+    for j, (centre, side) in enumerate(crops):
         a = crop_affine(centre, side, pr.crop)
         imgs.append(warp_to_crop(src, a, pr.crop))
         ks.append(torch.tensor(a @ k, dtype=torch.float32))
+        if guides is not None:
+            g = np.asarray(guides[j], np.float64).copy()
+            g[:, :2] = g[:, :2] @ a[:2, :2].T + a[:2, 2]
+            gs.append(torch.tensor(g, dtype=torch.float32))
     k_crop = torch.stack(ks)
-    return pr(torch.stack(imgs), k_crop), k_crop
+    return pr(torch.stack(imgs), k_crop, torch.stack(gs) if gs else None), k_crop
 
 
 def person_fields(pr: Predictor, res: Prediction, i: int, k: np.ndarray) -> dict[str, Any]:
@@ -381,7 +386,7 @@ def predict_people(checkpoint: str | Path, path: str | Path, out: str | Path, fo
                 d.box = np.round(d.box, 2)
             if found:
                 crops = [box_crop(d.box) for d in found]
-                res, k_crop = predict_crops(pr, image, crops, k)
+                res, k_crop = predict_crops(pr, image, crops, k, [d.keypoints for d in found])
                 for i, (d, (centre, side)) in enumerate(zip(found, crops, strict=True)):
                     verts = (res.vertices[i] + res.transl[i]).numpy()
                     meshes.append(verts)

@@ -27,6 +27,7 @@ from recovery.checkpoint import (
     save_atomic,
 )
 from recovery.config import RecoveryConfig, config_from_json, model_file
+from recovery.models.backbones.movenet import flip_coco
 from recovery.models.hmr import HMROutput, body_outputs, flip_average, predict_body
 from recovery.tasks import TASKS as TRAINED
 from recovery.utils.geometry import UPRIGHT_FACING_CAMERA, cam_to_translation, project
@@ -111,15 +112,21 @@ class Predictor:
         return self.body.keypoint_names.index("pelvis")
 
     @torch.no_grad()
-    def __call__(self, images: torch.Tensor, k_crop: torch.Tensor) -> Prediction:
-        """(B, 3, crop, crop) RGB in [0, 1] and (B, 3, 3) ``K_crop`` -> :class:`Prediction`."""
+    def __call__(self, images: torch.Tensor, k_crop: torch.Tensor, guide: torch.Tensor | None = None) -> Prediction:
+        """(B, 3, crop, crop) RGB in [0, 1] and (B, 3, 3) ``K_crop`` -> :class:`Prediction`.
+
+        ``guide`` (B, 17, 3): a person detector's COCO keypoints ``(x, y, score)`` of each crop's person
+        in crop pixels; a network that reads MoveNet's keypoints then reads that person's
+        (:meth:`recovery.models.backbones.movenet.MoveNet.keypoints`), not a neighbour's."""
         dev = next(self.model.parameters()).device
         k_crop = k_crop.to(dev)
         images = images.to(dev)
         if self.task == "hmr_blsm":
-            out, kp = self.model.forward_keypoints(images)
+            guide = guide.to(dev) if guide is not None and self.model.encoder is not None else None
+            out, kp = self.model.forward_keypoints(images, guide)
             if self.flip:
-                out = flip_average(self.body, out, self.model(images.flip(-1)))
+                mirrored = None if guide is None else flip_coco(guide, images.shape[-1])
+                out = flip_average(self.body, out, self.model.forward_keypoints(images.flip(-1), mirrored)[0])
             if self.fit is not None:
                 from recovery.models.backbones.movenet import COCO_KEYPOINTS
                 from recovery.models.fit2d import fit_to_keypoints

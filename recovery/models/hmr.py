@@ -3,7 +3,8 @@ Sec. 6.4.3).
 
 Image evidence (``head_input``): the backbone's pooled features (HMR), or, on a MoveNet backbone,
 MoveNet's own 2D keypoints and confidences through :class:`KeypointEncoder` (a lifting network, as
-keypoint-conditioned regressors do), optionally with the pooled features as a secondary input ->
+keypoint-conditioned regressors do), optionally with the pooled features or per-keypoint features of
+the stride-4 map (:class:`PartPool`) as a secondary input ->
 iterative error feedback (:mod:`recovery.models.heads`): starting from
 the mean parameters ``Theta_0``, each of ``ief_iterations`` steps regresses a correction from
 ``[features, Theta_t]`` through two FC layers of ``hidden`` units with ReLU and dropout,
@@ -84,6 +85,25 @@ class KeypointEncoder(nn.Module):
         return torch.cat([x, f], -1)
 
 
+class PartPool(nn.Module):
+    """A spatial head over MoveNet's stride-4 pyramid map: a 3x3 convolution (``width`` channels, ReLU),
+    then one feature vector per keypoint, its map averaged under a spatial softmax of MoveNet's own
+    heatmap logits for that keypoint (a soft read-out at the joint, as part-attention regressors do,
+    e.g. PARE's part-guided attention, here with MoveNet's heatmaps as the attention).
+    """
+
+    def __init__(self, channels: int, num_keypoints: int = 17, width: int = 64) -> None:
+        super().__init__()
+        self.conv = nn.Sequential(nn.Conv2d(channels, width, 3, padding=1), nn.ReLU())
+        self.out_features = num_keypoints * width
+
+    def forward(self, p4: torch.Tensor, heatmap: torch.Tensor) -> torch.Tensor:
+        """p4 (B, C, h, w), heatmap logits (B, K, h, w) -> (B, K * width)."""
+        f = self.conv(p4).flatten(2)  # (B, W, hw)
+        a = torch.softmax(heatmap.flatten(2).to(f.dtype), dim=-1)  # (B, K, hw)
+        return torch.einsum("bkn,bwn->bkw", a, f).flatten(1)
+
+
 class HMRBLSM(nn.Module):
     """Backbone + IEF regressor of BLSM parameters (module docstring).
 
@@ -94,7 +114,8 @@ class HMRBLSM(nn.Module):
         init: (P,) mean parameters ``Theta_0`` (:func:`recovery.models.heads.mean_theta`).
         pretrained: load the backbone's pretrained weights (ImageNet; MoveNet's own).
         hidden, dropout, iterations: the regressor (HMR: 1024, 0.5, 3).
-        head_input: ``pooled``, ``keypoints`` or ``keypoints+pooled`` (:class:`recovery.config.ModelConfig`).
+        head_input: ``pooled``, ``keypoints``, ``keypoints+pooled`` or ``keypoints+parts``
+            (:class:`recovery.config.ModelConfig`; ``parts``: :class:`PartPool` over the stride-4 map).
         image_dropout, keypoint_width: the :class:`KeypointEncoder`'s.
         train_blocks: -1 every backbone weight trains; 0 none (the backbone runs without gradients);
             N > 0 (MoveNet) the last N trunk blocks and what follows them.
@@ -111,11 +132,15 @@ class HMRBLSM(nn.Module):
         self.backbone = build_backbone(backbone, pretrained=pretrained)
         self.head_input = head_input
         self.encoder: KeypointEncoder | None = None
+        self.parts: PartPool | None = None
         width = self.backbone.out_channels
         if head_input != "pooled":
             if not isinstance(self.backbone, MoveNet):
                 raise ValueError(f"head_input {head_input!r} needs a MoveNet backbone, got {backbone!r}")
             image = self.backbone.out_channels if head_input == "keypoints+pooled" else 0
+            if head_input == "keypoints+parts":
+                self.parts = PartPool(self.backbone.p4_channels)
+                image = self.parts.out_features
             self.encoder = KeypointEncoder(17, keypoint_width, image, image_dropout)
             width = self.encoder.out_features
         self.regressor = IEFRegressor(width, init, hidden, dropout, iterations)
@@ -142,16 +167,19 @@ class HMRBLSM(nn.Module):
             self.backbone.eval()  # a fixed backbone keeps its BatchNorm statistics
         return self
 
-    def evidence(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def evidence(self, images: torch.Tensor, guide: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(B, 3, H, W) RGB in [0, 1] -> the regressor's input (B, C) and, with a keypoint head, MoveNet's
-        keypoints (B, 17, 3) ``(u, v, score)`` in pixels of the crop (else None)."""
+        keypoints (B, 17, 3) ``(u, v, score)`` in pixels of the crop (else None). ``guide`` (B, 17, 3):
+        a detector's keypoints of the wanted person, crop pixels (:meth:`MoveNet.keypoints`)."""
         x = self.backbone.normalize(images)
         with torch.set_grad_enabled(torch.is_grad_enabled() and self.train_blocks != 0):
             if self.encoder is None:
                 return self.backbone(x), None
             out = self.backbone.run(x)
-            kp = self.backbone.keypoints(out, soft=True)
-            pooled = out.c32.mean(dim=(2, 3)) if self.encoder.image is not None else None
+            kp = self.backbone.keypoints(out, soft=True, guide=guide)
+            pooled = out.c32.mean(dim=(2, 3)) if self.encoder.image is not None and self.parts is None else None
+        if self.parts is not None:  # trains even with the backbone fixed
+            pooled = self.parts(out.p4, out.heatmap)
         return self.encoder(kp, float(images.shape[-1]), pooled), kp
 
     def features(self, images: torch.Tensor) -> torch.Tensor:
@@ -162,9 +190,10 @@ class HMRBLSM(nn.Module):
         """Args: images (B, 3, H, W) RGB in [0, 1] (normalised here). Returns :class:`HMROutput`."""
         return self.decode(self.regressor(self.features(images)))
 
-    def forward_keypoints(self, images: torch.Tensor) -> tuple[HMROutput, torch.Tensor | None]:
+    def forward_keypoints(self, images: torch.Tensor, guide: torch.Tensor | None = None
+                          ) -> tuple[HMROutput, torch.Tensor | None]:
         """:meth:`forward` and the keypoints of :meth:`evidence` (None without a keypoint head)."""
-        f, kp = self.evidence(images)
+        f, kp = self.evidence(images, guide)
         return self.decode(self.regressor(f)), kp
 
     def decode(self, thetas: torch.Tensor) -> HMROutput:

@@ -72,3 +72,33 @@ def sphere(subdivisions: int = 2, seed: int = 0) -> tuple[np.ndarray, np.ndarray
     rng = np.random.default_rng(seed)
     v = m.vertices * (1 + 0.05 * rng.random((len(m.vertices), 1)))
     return v, np.asarray(m.faces)
+
+
+def fake_graph_convolutions(state: dict[str, torch.Tensor], node_map: dict, input_dims: list[str]
+                            ) -> tuple[list[dict], dict[str, np.ndarray]]:
+    """A TF.js graph's input placeholder (``input_dims``, NHWC sizes as strings) and one fused
+    convolution node per entry of a MoveNet ``node_map`` (``path -> (node, activation, stride)``,
+    :func:`recovery.models.backbones.movenet.graph_node_map`), with the weights of ``state`` in TF's
+    layouts (HWIO, depthwise HWCM) and MoveNet's node names (heads outside the feature extractor)."""
+    import base64
+
+    from recovery.models.backbones.movenet import GRAPH_PREFIX
+
+    dims = [{"size": s} for s in input_dims]
+    nodes: list[dict] = [{"name": "input", "op": "Placeholder", "attr": {"shape": {"shape": {"dim": dims}}}}]
+    weights: dict[str, np.ndarray] = {}
+    for path, (node, act, stride) in node_map.items():
+        head = node.split("/")[0].endswith("_0")  # kpt_heatmap_0, center_0, box_scale_0, ...
+        full = (GRAPH_PREFIX[1] if head else GRAPH_PREFIX[0]) + node
+        w = state[path + ".weight"]
+        depthwise = w.shape[1] == 1 and w.shape[0] > 1 and w.shape[-1] == 3
+        weights[full + "/k"] = (w.permute(2, 3, 0, 1) if depthwise else w.permute(2, 3, 1, 0)).numpy()
+        inputs = ["prev", full + "/k"]
+        if path + ".bias" in state:
+            weights[full + "/b"] = state[path + ".bias"].numpy()
+            inputs.append(full + "/b")
+        fused = [base64.b64encode(f.encode()).decode() for f in ["BiasAdd"] + ([act] if act else [])]
+        nodes.append({"name": full, "op": "FusedDepthwiseConv2dNative" if depthwise else "_FusedConv2D",
+                      "input": inputs, "attr": {"strides": {"list": {"i": ["1", str(stride), str(stride), "1"]}},
+                                                "fused_ops": {"list": {"s": fused}}}})
+    return nodes, weights

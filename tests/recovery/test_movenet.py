@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from recovery_helpers import fake_graph_convolutions
 
 from recovery.models.backbones import build_backbone
 from recovery.models.backbones.movenet import (
@@ -138,55 +139,8 @@ def test_graph_model_reader_round_trip_and_truncation(tmp_path) -> None:
 
 def _fake_graph(net: MoveNet, name: str, tmp_path) -> tuple:
     """A TF.js graph with MoveNet's node names, TF layouts and constants, made from ``net``'s weights."""
-    import base64
-
-    state = net.state_dict()
-    nodes, weights = (
-        [
-            {
-                "name": "input",
-                "op": "Placeholder",
-                "attr": {
-                    "shape": {
-                        "shape": {
-                            "dim": [
-                                {"size": "1"},
-                                {"size": str(net.input_size)},
-                                {"size": str(net.input_size)},
-                                {"size": "3"},
-                            ]
-                        }
-                    }
-                },
-            }
-        ],
-        {},
-    )
-    for path, (node, act, stride) in graph_node_map(name).items():
-        full = (
-            "StatefulPartitionedCall/"
-            if node.startswith("kpt") or node.startswith("center")
-            else "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/"
-        ) + node
-        w = state[path + ".weight"]
-        depthwise = w.shape[1] == 1 and w.shape[0] > 1 and w.shape[-1] == 3
-        weights[full + "/k"] = (w.permute(2, 3, 0, 1) if depthwise else w.permute(2, 3, 1, 0)).numpy()
-        inputs = ["prev", full + "/k"]
-        if path + ".bias" in state:
-            weights[full + "/b"] = state[path + ".bias"].numpy()
-            inputs.append(full + "/b")
-        fused = ["BiasAdd"] + ([act] if act else [])
-        nodes.append(
-            {
-                "name": full,
-                "op": "FusedDepthwiseConv2dNative" if depthwise else "_FusedConv2D",
-                "input": inputs,
-                "attr": {
-                    "strides": {"list": {"i": ["1", str(stride), str(stride), "1"]}},
-                    "fused_ops": {"list": {"s": [base64.b64encode(f.encode()).decode() for f in fused]}},
-                },
-            }
-        )
+    size = str(net.input_size)
+    nodes, weights = fake_graph_convolutions(net.state_dict(), graph_node_map(name), ["1", size, size, "3"])
     h = net.input_size // 4
     weights["ConstantFolding/StatefulPartitionedCall/truediv_2_recip"] = MoveNet.center_prior(h, h)[
         ..., None
@@ -282,6 +236,54 @@ def test_keypoint_head_gets_movenet_keypoints_and_a_fixed_backbone_gets_no_gradi
     assert torch.allclose(f, net.encoder(kp, 64.0, o.c32.mean((2, 3))), atol=1e-5)
     assert not torch.allclose(f[:, :256], g[:, :256])
     assert torch.allclose(f[:, 256:], g[:, 256:])
+
+
+def test_a_guide_steers_the_decoding_to_its_person_in_a_crop_of_two() -> None:
+    """Two people in one crop, the neighbour with the stronger centre: MoveNet takes the neighbour; given
+    the wanted person's keypoints (a detector's), the decoding reads that person."""
+    from recovery.models.backbones.movenet import COCO_KEYPOINTS, MoveNetOutput, flip_coco
+
+    net = MoveNet("movenet_lightning")
+    h = w = 12
+    heat = torch.full((1, 17, h, w), -10.0)
+    heat[..., 3, 3] = heat[..., 8, 8] = 5.0  # every joint of A at cell (3, 3), of B at (8, 8)
+    center = torch.full((1, 1, h, w), -10.0)
+    center[..., 3, 3], center[..., 8, 8] = 0.0, 3.0
+    zeros = torch.zeros(1, 34, h, w)
+    out = MoveNetOutput(c32=torch.zeros(1), p4=torch.zeros(1), heatmap=heat, center=center, regress=zeros, offset=zeros)
+    for soft in (False, True):
+        free = net.keypoints(out, soft=soft)[0]
+        assert torch.allclose(free[:, :2], torch.tensor([32.0, 32.0]))  # B, 8 cells of 4 px
+        guide = torch.tensor([[13.0, 11.0, 0.9]] * 17)[None]  # A, roughly
+        guided = net.keypoints(out, soft=soft, guide=guide)[0]
+        assert torch.allclose(guided[:, :2], torch.tensor([12.0, 12.0]))
+        weak = guide.clone()
+        weak[..., 2] = 0.1  # under GUIDE_SCORE: MoveNet's own choice
+        assert torch.allclose(net.keypoints(out, soft=soft, guide=weak), net.keypoints(out, soft=soft))
+    kp = torch.rand(2, 17, 3) * 64
+    mirrored = flip_coco(kp, 64.0)
+    lw, rw = COCO_KEYPOINTS.index("left_wrist"), COCO_KEYPOINTS.index("right_wrist")
+    assert torch.allclose(mirrored[:, rw, 0], 64.0 - kp[:, lw, 0]) and torch.equal(mirrored[:, rw, 1:], kp[:, lw, 1:])
+    assert torch.allclose(flip_coco(mirrored, 64.0), kp)
+
+
+def test_part_head_reads_the_stride4_map_at_each_keypoint_and_trains_over_a_fixed_backbone(model) -> None:
+    from recovery.models.hmr import PartPool
+
+    net = _hmr(model, head_input="keypoints+parts", train_blocks=0, hidden=32).train()
+    assert net.parts is not None and net.encoder.out_features == 512 and net.parts.out_features == 17 * 64
+    out = net(_astronaut(64).expand(2, -1, -1, -1))
+    out.pose.square().sum().backward()
+    assert all(p.grad is None for p in net.backbone.parameters())
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parts.parameters())
+    # each keypoint's vector is the map where its heatmap peaks: one hot cell per keypoint reads that cell
+    pool = PartPool(3, num_keypoints=2, width=4)
+    p4 = torch.randn(1, 3, 5, 6)
+    heat = torch.full((1, 2, 5, 6), -1e4)
+    heat[0, 0, 1, 2] = heat[0, 1, 4, 5] = 0.0
+    f = pool(p4, heat).view(2, 4)
+    conv = pool.conv(p4)[0]
+    assert torch.allclose(f[0], conv[:, 1, 2]) and torch.allclose(f[1], conv[:, 4, 5])
 
 
 def test_image_dropout_drops_whole_images_in_training_only() -> None:

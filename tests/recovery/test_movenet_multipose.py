@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from recovery_helpers import fake_graph_convolutions
 
 from recovery.detect import PersonDetector, letterbox
 from recovery.models.backbones.movenet import COCO_KEYPOINTS
@@ -204,27 +205,8 @@ def test_decoding_equals_a_naive_loop() -> None:
 
 def _fake_graph(net: MoveNetMultiPose) -> tuple[list, dict]:
     """A TF.js graph with MultiPose's node names, layouts, decoding nodes and constants, from ``net``."""
-    state = net.state_dict()
     enc = lambda s: base64.b64encode(s.encode()).decode()  # noqa: E731
-    dim = [{"size": "1"}, {"size": "-1"}, {"size": "-1"}, {"size": "3"}]
-    nodes = [{"name": "input", "op": "Placeholder", "attr": {"shape": {"shape": {"dim": dim}}}}]
-    weights: dict[str, np.ndarray] = {}
-    for path, (node, act, stride) in graph_node_map_multipose().items():
-        head = node.split("/")[0].endswith("_0")  # center_0, box_scale_0, ...: outside the feature extractor
-        full = ("StatefulPartitionedCall/" if head else
-                "StatefulPartitionedCall/center_net_mobile_net_v2fpn_feature_extractor/") + node
-        w = state[path + ".weight"]
-        depthwise = w.shape[1] == 1 and w.shape[-1] == 3
-        weights[full + "/k"] = (w.permute(2, 3, 0, 1) if depthwise else w.permute(2, 3, 1, 0)).numpy()
-        inputs = ["prev", full + "/k"]
-        if path + ".bias" in state:
-            weights[full + "/b"] = state[path + ".bias"].numpy()
-            inputs.append(full + "/b")
-        fused = ["BiasAdd"] + ([act] if act else [])
-        op = "FusedDepthwiseConv2dNative" if depthwise else "_FusedConv2D"
-        nodes.append({"name": full, "op": op, "input": inputs,
-                      "attr": {"strides": {"list": {"i": ["1", str(stride), str(stride), "1"]}},
-                               "fused_ops": {"list": {"s": [enc(f) for f in fused]}}}})
+    nodes, weights = fake_graph_convolutions(net.state_dict(), graph_node_map_multipose(), ["1", "-1", "-1", "3"])
     s = "StatefulPartitionedCall/"
     for short, (op, consts) in _DECODING.items():
         inputs = ["prev"] + [f"{s}{short}/c{i}" for i in sorted(consts)]

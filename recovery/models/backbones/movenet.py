@@ -61,6 +61,19 @@ COCO_KEYPOINTS = (
     "right_ankle",
 )
 """MoveNet's keypoint order (COCO's)."""
+COCO_FLIP = tuple(
+    COCO_KEYPOINTS.index(n.replace("left", "right") if "left" in n else n.replace("right", "left"))
+    for n in COCO_KEYPOINTS
+)
+"""The keypoint each becomes in the mirrored image (left and right swapped)."""
+
+
+def flip_coco(keypoints: torch.Tensor, width: float) -> torch.Tensor:
+    """(..., 17, 3) COCO keypoints ``(x, y, score)`` of an image ``width`` pixels wide -> the same
+    person's in the image mirrored left to right (``x -> width - x``, left and right swapped)."""
+    out = keypoints[..., COCO_FLIP, :].clone()
+    out[..., 0] = width - out[..., 0]
+    return out
 
 WEIGHTS_DIR = Path(__file__).resolve().parents[2] / "weights" / "movenet"
 
@@ -107,6 +120,9 @@ TAPS = {2: "c4", 5: "c8", 9: "c16"}
 HEADS = {"heatmap": 17, "center": 1, "regress": 34, "offset": 34}
 STRIDE = 4
 """Input pixels per cell of the heads."""
+GUIDE_SCORE = 0.3
+"""A guide keypoint (:meth:`MoveNet.keypoints`) steers from this score: MoveNet's own keypoint threshold
+in TF.js ``pose-detection`` (``scoreThreshold`` 0.3)."""
 
 
 class SameConv(nn.Conv2d):
@@ -188,6 +204,8 @@ class MoveNetLayers:
     attribute names are the state-dict names (``stem``, ``blocks.N``, ``head_conv``, ``fpn_top``,
     ``lateral16`` ... ``smooth4``, ``heads.NAME``)."""
 
+    p4_channels = 24  # the pyramid's finest map, in every variant
+
     def _build_layers(self, variant: MoveNetVariant, heads: dict[str, int]) -> None:
         stem, spec = variant.trunk()
         self.stem = SameConv(3, stem, 3, 2)
@@ -201,14 +219,15 @@ class MoveNetLayers:
         self.head_conv = SameConv(cin, 1280, 1)
         self.fpn_top = SameConv(1280, 64, 1)
         self.lateral16, self.lateral8 = SameConv(taps["c16"], 64, 1), SameConv(taps["c8"], 32, 1)
-        self.lateral4 = SameConv(taps["c4"], 24, 1)
+        p4 = self.p4_channels
+        self.lateral4 = SameConv(taps["c4"], p4, 1)
         self.smooth16, self.smooth8, self.smooth4 = (
             SeparableConv(64, 32),
-            SeparableConv(32, 24),
-            SeparableConv(24, 24),
+            SeparableConv(32, p4),
+            SeparableConv(p4, p4),
         )
         self.heads = nn.ModuleDict(
-            {k: nn.Sequential(SeparableConv(24, 96), SameConv(96, n, 1)) for k, n in heads.items()}
+            {k: nn.Sequential(SeparableConv(p4, 96), SameConv(96, n, 1)) for k, n in heads.items()}
         )
 
     def trunk(self, images: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -273,19 +292,40 @@ class MoveNet(MoveNetLayers, Backbone):
         x = torch.arange(w, device=device, dtype=dtype)[None] - w // 2
         return 1.0 / (torch.sqrt(y * y + x * x) + 1.8)
 
-    def keypoints(self, out: MoveNetOutput, soft: bool = False) -> torch.Tensor:
+    def keypoints(self, out: MoveNetOutput, soft: bool = False, guide: torch.Tensor | None = None) -> torch.Tensor:
         """(B, 17, 3): (x, y) in input pixels (pixel centres at integer + 0.5) and the heatmap score.
 
         ``soft=False`` is MoveNet's graph exactly; ``soft=True`` replaces the chosen cell by the
-        heatmap-weighted mean of its 3x3 neighbourhood, each cell plus its own offset."""
+        heatmap-weighted mean of its 3x3 neighbourhood, each cell plus its own offset.
+
+        ``guide`` (B, 17, 3), keypoints ``(x, y, score)`` of the wanted person in input pixels (a
+        person detector's), steers the choice of person in a crop that holds several: the centre
+        prior is centred on the mean of its keypoints scoring at least :data:`GUIDE_SCORE` instead of
+        on the crop's centre, and each such keypoint is looked for near the guide's position instead of
+        where the chosen centre's regression puts it (MoveNet's own ``heat / (distance + 1.8)``
+        rule). A guide keypoint under the score, or a row with none, leaves MoveNet's choice."""
         heat = torch.sigmoid(out.heatmap.float())
         ctr = torch.sigmoid(out.center.float())[:, 0]
         b, k, h, w = heat.shape
         bi = torch.arange(b, device=heat.device)
-        idx = (ctr * self.center_prior(h, w, heat.device)).flatten(1).argmax(1)
+        prior = self.center_prior(h, w, heat.device).expand(b, h, w)
+        sure = None
+        if guide is not None:
+            g = guide.float().to(heat.device)
+            sure = g[..., 2] >= GUIDE_SCORE  # (B, K)
+            cells = g[..., :2] / STRIDE  # (x, y) in the units of the decoding: pixels = cells * STRIDE
+            n = sure.sum(1, keepdim=True)
+            mean = (cells * sure[..., None]).sum(1) / n.clamp_min(1)  # (B, 2)
+            ys = torch.arange(h, device=heat.device, dtype=heat.dtype).view(1, h, 1)
+            xs = torch.arange(w, device=heat.device, dtype=heat.dtype).view(1, 1, w)
+            moved = 1.0 / (torch.sqrt((ys - mean[:, 1, None, None]) ** 2 + (xs - mean[:, 0, None, None]) ** 2) + 1.8)
+            prior = torch.where((n > 0)[..., None], moved, prior)
+        idx = (ctr * prior).flatten(1).argmax(1)
         cy, cx = torch.div(idx, w, rounding_mode="floor"), idx % w
         reg = out.regress.float()[bi, :, cy, cx].view(b, k, 2)
         ry, rx = cy[:, None] + reg[..., 0], cx[:, None] + reg[..., 1]
+        if sure is not None:
+            ry, rx = torch.where(sure, cells[..., 1], ry), torch.where(sure, cells[..., 0], rx)
         ys = torch.arange(h, device=heat.device, dtype=heat.dtype).view(1, 1, h, 1)
         xs = torch.arange(w, device=heat.device, dtype=heat.dtype).view(1, 1, 1, w)
         dist = torch.sqrt((ys - ry[..., None, None]) ** 2 + (xs - rx[..., None, None]) ** 2) + 1.8
