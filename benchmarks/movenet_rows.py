@@ -68,6 +68,10 @@ ROWS = {  # name: (what it is, checkpoint or config)
         "the rate",
         "config",
     ),
+    "kpimg_all": (
+        "kpimg_frozen's recipe with the whole of MoveNet trained at 0.1x the rate",
+        "config",
+    ),
     "kp_frozen_long": (
         "kp_frozen trained for 800 more steps (1600 in all; train.init, the schedule restarted)",
         "config",
