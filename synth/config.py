@@ -192,7 +192,7 @@ class PeopleConfig:
     repeats only once every subject is in the image, and the run says so in one line before it
     starts. ``true``: they must be; a pool smaller than ``max`` is an error before any work.
     ``false``: subjects are drawn with replacement (twins possible), as before this key: the images
-    of a dataset made before it (:func:`synth.sample.draw_subject`; the manifest holds the key, so
+    of a dataset made before it (:func:`synth.people.draw_subject`; the manifest holds the key, so
     ``--resume`` into such a dataset is refused all the same)."""
 
     min: int = 1

@@ -38,8 +38,9 @@ from synth import backgrounds as bg
 from synth import lock as out_lock
 from synth import worker
 from synth.config import GeneratorConfig
+from synth.people import subject_pool_warning
 from synth.progress import Progress, log
-from synth.sample import SUBJECTS, PoseSource, subject_pool_warning
+from synth.sample import SUBJECTS, PoseSource
 from synth.shards import ShardWriter, SkipSample, WriteError
 from synth.subjects import anny_subject, load_subject, model_fingerprint, save_subject
 
@@ -338,7 +339,7 @@ def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
     """Open and check every input file of a run before any work: the pose source (for sequences, clips
     long enough), every background file (decoded as the workers will) and every scan folder; a
     ValueError names the first bad one. Then the subject pool against ``people.max``
-    (:func:`synth.sample.subject_pool_warning`): one line when it is smaller, an error when
+    (:func:`synth.people.subject_pool_warning`): one line when it is smaller, an error when
     ``people.distinct`` is true."""
     poses = PoseSource(cfg)
     if cfg.sequence.enabled:

@@ -3,7 +3,7 @@
 A sequence of ``T`` frames at ``F`` fps (``sequence.frames``, ``sequence.fps``) is made by one worker
 from its own random generator (:func:`sequence_rng`), in this order:
 
-1. **People.** Each draws a subject not yet in the clip (:func:`synth.sample.draw_subject`), a
+1. **People.** Each draws a subject not yet in the clip (:func:`synth.people.draw_subject`), a
    motion-library clip (children: ``poses.child_clips`` when set) and a window of it without a cut
    (:func:`clip_segments`: a root or joint-angle jump), a heading (yaw about +Y, uniform) and
    plays the window from its start: the pose is interpolated between the clip's frames (a
@@ -53,7 +53,8 @@ import numpy as np
 
 from synth.camera import outline_index
 from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
-from synth.sample import Person, draw_subject, footprint
+from synth.people import draw_subject, footprint
+from synth.sample import Person
 
 CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
@@ -324,7 +325,7 @@ class SequenceMaker:
     # -- people
     def _person(self, rng: np.random.Generator, taken: list[int]) -> Actor:
         """One person's clip, posed on the frame grid (module docstring, steps 1-2); its subject is
-        drawn (:func:`synth.sample.draw_subject`) and appended to ``taken``, the clip's so far."""
+        drawn (:func:`synth.people.draw_subject`) and appended to ``taken``, the clip's so far."""
         from scipy.spatial.transform import Rotation
 
         m = self.m

@@ -16,7 +16,7 @@ Eq. 6.4 (:func:`blsm.learn.keypoint_fit.fit_keypoints`), a grid search of the ha
 ``foot_search`` the ankles, are searched again around the fit), then the same free-form stage 2
 (Eqs. 5.14-5.25, used instead of Eqs. 6.8-6.9) with no landmark term, on the scan cropped to the
 fitted body. Frames of one subject (a 4D sequence) share the bone and shape coefficients and are
-smoothed in time, over the frames' times (:func:`blsm.learn.keypoint_fit.frame_times`); a frame whose
+smoothed in time, over the frames' times (:func:`blsm.learn.temporal.frame_times`); a frame whose
 keypoint error is far above the rest of its sequence is reported on stderr.
 
 The settings are a :class:`blsm.learn.register_config.RegisterConfig`; the results are
@@ -45,22 +45,14 @@ import numpy as np
 import torch
 
 from blsm.learn.end_search import search_feet, search_hands
-from blsm.learn.keypoint_fit import (
-    REFERENCE_FPS,
-    KeypointFitConfig,
-    KeypointSet,
-    fit_keypoints,
-    fit_shape,
-    frame_times,
-    near_body,
-    outlier_frames,
-)  # fmt: skip
+from blsm.learn.keypoint_fit import KeypointFitConfig, KeypointSet, fit_keypoints, fit_shape, near_body
 from blsm.learn.landmark_fit import LandmarkSelection, Stage1, default_selection, fit_landmarks
 from blsm.learn.posing import pose
 from blsm.learn.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
 from blsm.learn.registrations import Registration, correspondence_error
 from blsm.learn.scans import non_manifold_edges
 from blsm.learn.surface_fit import ScanData, fit_surface, refine
+from blsm.learn.temporal import REFERENCE_FPS, frame_times, outlier_frames
 
 __all__ = [
     "DEFAULT_CONFIG",
@@ -306,9 +298,9 @@ def register_keypoints(
         keypoint_config: settings of Eqs. 6.4-6.6.
         sequence: the scans are frames of one subject in time order: one c_b and c_s, poses smoothed
             (Eq. 6.4's S) over the frames' times (``keypoint_config.fps``, else the scans' meta, else
-            15 fps: :func:`blsm.learn.keypoint_fit.frame_times`); else every scan is its own subject.
+            15 fps: :func:`blsm.learn.temporal.frame_times`); else every scan is its own subject.
             A frame whose keypoint error after Eq. 6.4 or Eqs. 6.5-6.6 is over twice the sequence's
-            median and over 10 mm (:func:`blsm.learn.keypoint_fit.outlier_frames`) is reported in
+            median and over 10 mm (:func:`blsm.learn.temporal.outlier_frames`) is reported in
             one ``warning:`` line on stderr (whatever ``progress``) and marked
             ``meta["keypoint_outlier"]``.
         selection: the targets are landmarks of this selection (A_lm), not model keypoints.
@@ -333,17 +325,7 @@ def register_keypoints(
     if stage2_keypoints > 0 and selection is None and bool((kps.joint >= 0).any()):  # before any fitting
         raise ValueError("stage2_keypoints needs keypoints that are all surface points (a learnt A_kp)")
     groups = torch.zeros(len(scans), dtype=torch.long) if sequence else torch.arange(len(scans))
-    times, source = (None, "")
-    if sequence:
-        times, source = frame_times([getattr(s, "meta", None) for s in scans], kcfg.fps)
-    if sequence and times is not None and bool((times[1:] <= times[:-1]).any()):
-        i = int((times[1:] <= times[:-1]).nonzero()[0]) + 1
-        raise ValueError(f"{_name(scans[i], i)}: frame time {float(times[i]):.4g} s does not follow the "
-                         f"previous frame's {float(times[i - 1]):.4g} s ({source}); give the frames in time "
-                         "order")
-    if log and sequence and len(scans) > 1:
-        gaps = np.diff(times.numpy()) if times is not None else np.full(len(scans) - 1, 1 / REFERENCE_FPS)
-        log(f"temporal smoothing: frames {gaps.min():.4g}-{gaps.max():.4g} s apart ({source})")
+    times = _sequence_times(scans, kcfg.fps, log) if sequence else None
     t0 = time.perf_counter()
     st_kp = fit_keypoints(model, kps, pts, conf, groups, kcfg, times=times)
     t1 = time.perf_counter()
@@ -411,6 +393,21 @@ def register_keypoints(
     return regs
 
 
+def _sequence_times(scans: Sequence[Any], fps: float, log: Any) -> torch.Tensor | None:
+    """The times of a sequence's frames (:func:`blsm.learn.temporal.frame_times`), checked to increase
+    (a ValueError naming the first frame out of order); their spacing logged."""
+    times, source = frame_times([getattr(s, "meta", None) for s in scans], fps)
+    if times is not None and bool((times[1:] <= times[:-1]).any()):
+        i = int((times[1:] <= times[:-1]).nonzero()[0]) + 1
+        raise ValueError(f"{_name(scans[i], i)}: frame time {float(times[i]):.4g} s does not follow the "
+                         f"previous frame's {float(times[i - 1]):.4g} s ({source}); give the frames in time "
+                         "order")
+    if log and len(scans) > 1:
+        gaps = np.diff(times.numpy()) if times is not None else np.full(len(scans) - 1, 1 / REFERENCE_FPS)
+        log(f"temporal smoothing: frames {gaps.min():.4g}-{gaps.max():.4g} s apart ({source})")
+    return times
+
+
 def _name(scan: Any, n: int) -> str:
     """A scan's id (its meta's), else ``frame n``."""
     return str((getattr(scan, "meta", None) or {}).get("id", f"frame {n}"))
@@ -418,7 +415,7 @@ def _name(scan: Any, n: int) -> str:
 
 def _warn_outliers(scans: Sequence[Any], fit: Any, stage: str, seen: set[int]) -> None:
     """One ``warning:`` line on stderr per frame of a sequence whose keypoint error after ``stage``
-    is far above its sequence's (:func:`blsm.learn.keypoint_fit.outlier_frames`), once per frame
+    is far above its sequence's (:func:`blsm.learn.temporal.outlier_frames`), once per frame
     (``seen`` collects the reported frames)."""
     err = fit.keypoint_error
     for n in outlier_frames(err, fit.groups):

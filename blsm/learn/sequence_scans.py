@@ -127,7 +127,7 @@ def make_sequence(
         frames, step, start: the clip frames ``start, start + step, ...``; each scan's meta keeps its
             time in the clip (``time``, seconds), its index in the sequence (``pose``) and the
             sequence's frame rate (``fps``), which the temporal smoothing of ``blsm register
-            --sequence`` reads (:func:`blsm.learn.keypoint_fit.frame_times`).
+            --sequence`` reads (:func:`blsm.learn.temporal.frame_times`).
         subject: subject index for :func:`blsm.learn.population.sample_subject` (with ``seed``).
         yaw: rotation of the whole sequence about Y, radians (the clip's own root motion is kept).
         artefacts: :class:`blsm.learn.population.Artefacts` (default: the population's).

@@ -15,7 +15,8 @@ from tiny_run import TINY, drawing_maker, drawn
 
 from synth import format as fmt
 from synth.config import GeneratorConfig, PeopleConfig, RenderConfig
-from synth.sample import Person, SampleMaker, place_people, pose_person, subdivide
+from synth.people import place_people
+from synth.sample import Person, SampleMaker, pose_person, subdivide
 from synth.shards import sample_rng
 
 ROOT = Path(__file__).resolve().parents[2]
