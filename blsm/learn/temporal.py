@@ -6,13 +6,10 @@ smoothed less), and the frames whose fit error stands out (:func:`outlier_frames
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 import torch
-
-if TYPE_CHECKING:
-    from blsm.learn.keypoint_fit import KeypointFitConfig
 
 __all__ = ["OUTLIER_FACTOR", "OUTLIER_FLOOR", "REFERENCE_FPS", "frame_times", "outlier_frames", "smoothing"]
 
@@ -28,7 +25,7 @@ OUTLIER_FLOOR: float = 0.01
 
 
 def smoothing(joints: torch.Tensor, angles: torch.Tensor, groups: torch.Tensor,
-              cfg: KeypointFitConfig, times: torch.Tensor | None = None) -> torch.Tensor:
+              cfg: Any, times: torch.Tensor | None = None) -> torch.Tensor:
     """S of Eqs. 6.4-6.5: temporal smoothness of consecutive frames of the same group (sequence).
 
     Physical rates from finite differences over the frames' times: with h1 = t_i - t_{i-1} and
@@ -42,7 +39,8 @@ def smoothing(joints: torch.Tensor, angles: torch.Tensor, groups: torch.Tensor,
     Args:
         joints: (T, J, 3) posed joints, metres. angles: (T, D) radians.
         groups: (T,) long, the sequence of each frame; differences never straddle two groups.
-        cfg: the weights (``smooth_accel``, ``smooth_velocity``, ``smooth_angle_accel``).
+        cfg: the weights (``smooth_accel``, ``smooth_velocity``, ``smooth_angle_accel`` of a
+            :class:`blsm.learn.keypoint_fit.KeypointFitConfig`).
         times: (T,) seconds, increasing within a group (None: frames ``1 / REFERENCE_FPS`` apart).
 
     Returns:
