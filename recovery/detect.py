@@ -295,7 +295,7 @@ def second_look(net: MoveNet, image: np.ndarray, boxes: list[np.ndarray], contex
     """MoveNet SinglePose ``net`` on the square crop of side ``context`` times each box's longer side
     about its centre (antialiased, zeros outside the image): (N, 17, 3) keypoints ``(x, y, score)`` in
     image pixels."""
-    from synth.data import crop_affine, warp_to_crop
+    from synth.data import crop_affine, map_points, warp_to_crop
 
     if not boxes:
         return np.zeros((0, 17, 3))
@@ -311,8 +311,7 @@ def second_look(net: MoveNet, image: np.ndarray, boxes: list[np.ndarray], contex
         out.append(net.keypoints(net.run(net.normalize(crops))).double().numpy())
     kps = np.concatenate(out)
     for kp, a in zip(kps, affines, strict=True):
-        inv = np.linalg.inv(a)
-        kp[:, :2] = kp[:, :2] @ inv[:2, :2].T + inv[:2, 2]
+        kp[:, :2] = map_points(kp[:, :2], np.linalg.inv(a))
     return kps
 
 

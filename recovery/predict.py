@@ -65,7 +65,7 @@ import torch
 from blsm.io import atomic_write
 from recovery.predictor import Prediction, Predictor, load_predictor
 from recovery.utils.viz import draw_boxes, face_parts, overlay, parts_overlay, people_overlay
-from synth.data import crop_affine, warp_to_crop
+from synth.data import crop_affine, map_points, warp_to_crop
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".gif", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 """Files of a folder that ``predict`` reads (case-insensitive)."""
@@ -119,7 +119,7 @@ def predict_crops(pr: Predictor, image: np.ndarray, crops: list[tuple[tuple[floa
         ks.append(torch.tensor(a @ k, dtype=torch.float32))
         if guides is not None:
             g = np.asarray(guides[j], np.float64).copy()
-            g[:, :2] = g[:, :2] @ a[:2, :2].T + a[:2, 2]
+            g[:, :2] = map_points(g[:, :2], a)
             gs.append(torch.tensor(g, dtype=torch.float32))
     k_crop = torch.stack(ks)
     return pr(torch.stack(imgs), k_crop, torch.stack(gs) if gs else None), k_crop

@@ -158,6 +158,12 @@ def crop_affine(
     return out
 
 
+def map_points(points: np.ndarray, affine: np.ndarray) -> np.ndarray:
+    """(..., 2) pixel points through a (3, 3) affine (:func:`crop_affine`'s ``A``, or its inverse to go
+    from crop back to original pixels): ``A [p, 1]``, without the homogeneous coordinate."""
+    return points @ affine[:2, :2].T + affine[:2, 2]
+
+
 def camera_rotation(rotation_deg: float, flip: bool) -> np.ndarray:
     """``L = M Rz`` (3, 3): the camera-frame map matching :func:`crop_affine`'s rotation and flip."""
     c, s = math.cos(math.radians(rotation_deg)), math.sin(math.radians(rotation_deg))
@@ -540,7 +546,7 @@ class SynthDataset(SeededDataset):
         labels = warp_to_crop(labels, amat, self.crop, mode="nearest")
         part_map = labels[1].round().long()
 
-        uv = lab["kp2"] @ amat[:2, :2].T + amat[:2, 2]  # (K, 2)
+        uv = map_points(lab["kp2"], amat)  # (K, 2)
         vis = lab["vis"] & (uv >= 0).all(1) & (uv < self.crop).all(1)
         pelvis = lab["kp3"][self._pelvis]
         rel = (lab["kp3"][self._sel] - pelvis) @ lmat.T  # (K, 3)

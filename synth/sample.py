@@ -242,12 +242,13 @@ class PoseSource:
         the library for a clip it does not hold, or for none left."""
         from blsm.mocap.library import list_clips, load_clip
 
-        if not Path(self.cfg.library).is_dir():
+        try:
+            files = list_clips(self.cfg.library)
+        except ValueError as e:  # no folder, or no clips in it
             raise ValueError(
-                f"{self.cfg.library}: no motion library (poses.library) there; make it with `make motions` "
-                "or set poses.library to a folder written by `blsm mocap import`"
-            )
-        files = list_clips(self.cfg.library)
+                f"{self.cfg.library}: no motion library (poses.library) there ({str(e).split(': ', 1)[-1]}); "
+                "make it with `make motions` or set poses.library to a folder written by `blsm mocap import`"
+            ) from None
         names = {Path(f).stem for f in files}
         unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips, *self.cfg.child_clips) if n not in names]
         if unknown:

@@ -43,7 +43,7 @@ from blsm.kinematics import bone_scales
 from blsm.learn.landmark_fit import LandmarkSelection, Stage1, lbfgs, pose_angles
 from blsm.learn.posing import pose
 from blsm.learn.surface_fit import mutual_nearest_neighbours, sample_surface
-from blsm.learn.temporal import REFERENCE_FPS, frame_times, outlier_frames, smoothing
+from blsm.learn.temporal import REFERENCE_FPS, check_times, frame_times, outlier_frames, smoothing
 
 __all__ = [
     "KeypointFit",
@@ -379,8 +379,7 @@ def fit_keypoints(
     groups = torch.zeros(t_n, dtype=torch.long) if groups is None else groups.long()
     if conf.shape != targets.shape[:2] or groups.shape != (t_n,):
         raise ValueError(f"confidence must be (T, K) and groups (T,), got {tuple(conf.shape)}, {tuple(groups.shape)}")
-    if times is not None and tuple(times.shape) != (t_n,):
-        raise ValueError(f"times must be (T,) = ({t_n},), got {tuple(times.shape)}")
+    check_times(times, t_n)
     prob = _Problem(model, keypoints, targets, conf, groups, cfg)
     few = (prob.mask.sum(1) < 4).nonzero()
     if len(few):

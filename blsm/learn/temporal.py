@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["OUTLIER_FACTOR", "OUTLIER_FLOOR", "REFERENCE_FPS", "frame_times", "outlier_frames", "smoothing"]
+__all__ = ["OUTLIER_FACTOR", "OUTLIER_FLOOR", "REFERENCE_FPS", "check_times", "frame_times", "outlier_frames", "smoothing"]
 
 # Frame rate (frames per second) at which the smoothing weights were set (a 15 fps walk,
 # docs/markerless.md), and assumed for a sequence whose frame times are unknown: at this spacing S is
@@ -53,9 +53,7 @@ def smoothing(joints: torch.Tensor, angles: torch.Tensor, groups: torch.Tensor,
     t_n = joints.shape[0]
     if times is None:
         times = torch.arange(t_n, dtype=joints.dtype) / REFERENCE_FPS
-    times = times.to(joints.dtype)
-    if times.shape != (t_n,):
-        raise ValueError(f"times must be ({t_n},), got {tuple(times.shape)}")
+    times = check_times(times, t_n).to(joints.dtype)
     same2 = groups[1:] == groups[:-1]
     h = times[1:] - times[:-1]  # (T-1,) seconds
     if bool((h[same2] <= 0).any()):
@@ -79,6 +77,13 @@ def smoothing(joints: torch.Tensor, angles: torch.Tensor, groups: torch.Tensor,
         aacc = accel(angles).square().mean(-1)
         out = out + ((cfg.smooth_accel * acc + cfg.smooth_angle_accel * aacc) * same).sum()
     return out
+
+
+def check_times(times: torch.Tensor | None, t_n: int) -> torch.Tensor | None:
+    """``times`` unchanged if it is None or (T,) = (``t_n``,), else a ValueError naming both shapes."""
+    if times is not None and tuple(times.shape) != (t_n,):
+        raise ValueError(f"times must be (T,) = ({t_n},), got {tuple(times.shape)}")
+    return times
 
 
 def frame_times(metas: Sequence[dict | None], fps: float = 0.0) -> tuple[torch.Tensor | None, str]:

@@ -269,7 +269,7 @@ def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.n
     K_crop, affine). ``antialias``: :func:`synth.data.warp_to_crop`'s prefilter (off: bilinear
     sampling alone, as before 2026-12-02)."""
     from recovery.predict import read_image
-    from synth.data import crop_affine, warp_to_crop
+    from synth.data import crop_affine, map_points, warp_to_crop
 
     names = list(getattr(pr, "keypoint_names", None) or pr.body.keypoint_names)
     ids = [names.index(n) for n in COCO_NAMES]
@@ -297,8 +297,7 @@ def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.n
             res = pr(torch.stack(crops), torch.stack(ks))
         uv = res.keypoints_2d[:, ids].double().numpy()
         for n, i in enumerate(chunk):
-            inv = np.linalg.inv(affs[n])
-            out[i] = uv[n] @ inv[:2, :2].T + inv[:2, 2]
+            out[i] = map_points(uv[n], np.linalg.inv(affs[n]))
             views.append({"person": i, "crop": (crops[n].permute(1, 2, 0).numpy() * 255 + 0.5).astype(np.uint8),
                           "vertices": None if res.vertices is None else (res.vertices[n] + res.transl[n]).numpy(),
                           "K_crop": ks[n].double().numpy(),
@@ -454,6 +453,7 @@ def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray
     from PIL import Image, ImageDraw
 
     from recovery.utils.viz import overlay
+    from synth.data import map_points
 
     views = views[:count]
     if not views:
@@ -468,8 +468,7 @@ def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray
         draw = ImageDraw.Draw(im)
         sc = tile / crop.shape[0]
         i = v["person"]
-        a = v["affine"]
-        ref_uv = domain.ref[i, :, :2] @ a[:2, :2].T + a[:2, 2]
+        ref_uv = map_points(domain.ref[i, :, :2], v["affine"])
         for pts, vis, colour in ((ref_uv, domain.vis[i], (40, 220, 40)), (v["uv"], np.ones(len(COCO_NAMES), bool), (230, 40, 40))):
             for s, e in COCO_SKELETON:
                 if vis[s] and vis[e]:

@@ -177,10 +177,13 @@ class HMRBLSM(nn.Module):
                 return self.backbone(x), None
             out = self.backbone.run(x)
             kp = self.backbone.keypoints(out, soft=True, guide=guide)
-            pooled = out.c32.mean(dim=(2, 3)) if self.encoder.image is not None and self.parts is None else None
-        if self.parts is not None:  # trains even with the backbone fixed
-            pooled = self.parts(out.p4, out.heatmap)
-        return self.encoder(kp, float(images.shape[-1]), pooled), kp
+        if self.parts is not None:  # pooled per part; trains even with the backbone fixed
+            image = self.parts(out.p4, out.heatmap)
+        elif self.encoder.image is not None:
+            image = out.c32.mean(dim=(2, 3))
+        else:
+            image = None
+        return self.encoder(kp, float(images.shape[-1]), image), kp
 
     def features(self, images: torch.Tensor) -> torch.Tensor:
         """(B, 3, H, W) RGB in [0, 1] -> the regressor's input (B, C)."""

@@ -17,14 +17,18 @@ ROOT = Path(__file__).resolve().parents[2]
 VIDEO = ROOT / "configs/synth/video.yaml"
 
 
-def test_the_video_config_without_its_motion_library_names_the_fix(tmp_path, capsys):
+@pytest.mark.parametrize("made", [False, True], ids=["absent", "empty"])
+def test_the_video_config_without_its_motion_library_names_the_fix(tmp_path, capsys, made):
     out = tmp_path / "video"
     absent = tmp_path / "motions"
+    if made:  # a folder with no clips in it (an import that was stopped before its first clip)
+        absent.mkdir()
     assert main(["generate", str(VIDEO), "--out", str(out), "--set", f"poses.library={absent}"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"synth: error: {absent}: no motion library"), err
     assert "make motions" in err[0] and "poses.library" in err[0], err
-    assert not out.exists() and not absent.exists()
+    assert ("no motion files" in err[0]) == made, err
+    assert not out.exists() and absent.exists() == made
 
 
 def test_num_says_images_or_sequences_as_the_config_makes_them(tmp_path, capsys):

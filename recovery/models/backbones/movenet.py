@@ -288,9 +288,8 @@ class MoveNet(MoveNetLayers, Backbone):
     ) -> torch.Tensor:
         """(h, w) ``1 / (d + 1.8)``, d the distance in cells from cell (h/2, w/2): MoveNet's preference
         for the person nearest the crop's centre (the graph's 48x48 constant for Lightning, exactly)."""
-        y = torch.arange(h, device=device, dtype=dtype)[:, None] - h // 2
-        x = torch.arange(w, device=device, dtype=dtype)[None] - w // 2
-        return 1.0 / (torch.sqrt(y * y + x * x) + 1.8)
+        centre = torch.tensor([h // 2, w // 2], device=device, dtype=dtype)
+        return 1.0 / distance_term(h, w, centre[0], centre[1])
 
     def keypoints(self, out: MoveNetOutput, soft: bool = False, guide: torch.Tensor | None = None) -> torch.Tensor:
         """(B, 17, 3): (x, y) in input pixels (pixel centres at integer + 0.5) and the heatmap score.
@@ -316,9 +315,7 @@ class MoveNet(MoveNetLayers, Backbone):
             cells = g[..., :2] / STRIDE  # (x, y) in the units of the decoding: pixels = cells * STRIDE
             n = sure.sum(1, keepdim=True)
             mean = (cells * sure[..., None]).sum(1) / n.clamp_min(1)  # (B, 2)
-            ys = torch.arange(h, device=heat.device, dtype=heat.dtype).view(1, h, 1)
-            xs = torch.arange(w, device=heat.device, dtype=heat.dtype).view(1, 1, w)
-            moved = 1.0 / (torch.sqrt((ys - mean[:, 1, None, None]) ** 2 + (xs - mean[:, 0, None, None]) ** 2) + 1.8)
+            moved = 1.0 / distance_term(h, w, mean[:, 1], mean[:, 0])
             prior = torch.where((n > 0)[..., None], moved, prior)
         idx = (ctr * prior).flatten(1).argmax(1)
         cy, cx = torch.div(idx, w, rounding_mode="floor"), idx % w
@@ -326,10 +323,7 @@ class MoveNet(MoveNetLayers, Backbone):
         ry, rx = cy[:, None] + reg[..., 0], cx[:, None] + reg[..., 1]
         if sure is not None:
             ry, rx = torch.where(sure, cells[..., 1], ry), torch.where(sure, cells[..., 0], rx)
-        ys = torch.arange(h, device=heat.device, dtype=heat.dtype).view(1, 1, h, 1)
-        xs = torch.arange(w, device=heat.device, dtype=heat.dtype).view(1, 1, 1, w)
-        dist = torch.sqrt((ys - ry[..., None, None]) ** 2 + (xs - rx[..., None, None]) ** 2) + 1.8
-        kidx = (heat / dist).flatten(2).argmax(2)
+        kidx = (heat / distance_term(h, w, ry, rx)).flatten(2).argmax(2)
         ky, kx = torch.div(kidx, w, rounding_mode="floor"), kidx % w
         off = out.offset.float().view(b, k, 2, h, w)
         kk = torch.arange(k, device=heat.device)
@@ -353,6 +347,15 @@ class MoveNet(MoveNetLayers, Backbone):
         return torch.stack(
             [px * STRIDE, py * STRIDE, score], -1
         )  # MoveNet's (k + o) / w, times the input side
+
+
+def distance_term(h: int, w: int, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """(..., h, w) ``d + 1.8``, d the distance in cells of each cell of an (h, w) grid from the point
+    ``(y, x)`` (tensors of one shape ``(...)``): the denominator of MoveNet's decoding, which divides
+    the centre heatmap and each keypoint's heatmap by it to prefer the candidate nearest a point."""
+    ys = torch.arange(h, device=y.device, dtype=y.dtype).view(h, 1)
+    xs = torch.arange(w, device=x.device, dtype=x.dtype).view(1, w)
+    return torch.sqrt((ys - y[..., None, None]) ** 2 + (xs - x[..., None, None]) ** 2) + 1.8
 
 
 def movenet_weights_path(name: str) -> Path:
