@@ -17,8 +17,6 @@ from typing import Any
 
 from blsm.config import config_from_dict
 from blsm.io import read_yaml
-from recovery.datasets.meshes import MeshDataConfig
-from synth.data import AugmentConfig
 
 BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2",
              "movenet_lightning", "movenet_thunder")
@@ -90,8 +88,49 @@ class ModelConfig:
 
 
 @dataclass(frozen=True)
+class AugmentConfig:
+    """Random crop augmentation (defaults after SPIN / HMR).
+
+    Attributes:
+        scale: the crop side is multiplied by a factor uniform in ``[1 - scale, 1 + scale]``.
+        rotation_deg: in-plane rotation uniform in ``[-rotation_deg, rotation_deg]`` degrees ...
+        rotation_prob: ... drawn with this probability (else 0).
+        flip_prob: probability of a horizontal mirror.
+        color: per-channel multiplicative colour factor uniform in ``[1 - color, 1 + color]``
+            (SPIN's channel noise).
+        translation: crop centre shift, uniform in ``[-translation, translation]`` times the side.
+        brightness: added brightness uniform in ``[-brightness, brightness]``
+            (``kornia.enhance.adjust_brightness``).
+        contrast: contrast factor uniform in ``[1 - contrast, 1 + contrast]`` (``adjust_contrast``).
+        saturation: saturation factor uniform in ``[1 - saturation, 1 + saturation]``
+            (``adjust_saturation``).
+        hue: hue shift uniform in ``[-hue, hue]`` turns (``adjust_hue``, which takes radians).
+    """
+
+    scale: float = 0.25
+    rotation_deg: float = 30.0
+    rotation_prob: float = 0.6
+    flip_prob: float = 0.5
+    color: float = 0.4
+    translation: float = 0.05
+    brightness: float = 0.1
+    contrast: float = 0.2
+    saturation: float = 0.2
+    hue: float = 0.02
+
+    def __post_init__(self) -> None:
+        ok = 0 <= self.scale < 1 and 0 <= self.color < 1 and min(self.rotation_deg, self.translation) >= 0
+        ok &= 0 <= self.brightness <= 1 and 0 <= self.contrast < 1 and 0 <= self.saturation < 1 and 0 <= self.hue <= 0.5
+        if not (ok and 0 <= self.rotation_prob <= 1 and 0 <= self.flip_prob <= 1):
+            raise ValueError(
+                f"augment ranges must be >= 0 (scale, color, contrast, saturation < 1; brightness, "
+                f"probabilities <= 1; hue <= 0.5), got {self}"
+            )
+
+
+@dataclass(frozen=True)
 class AugmentSpec(AugmentConfig):
-    """The per-batch crop augmentation: :class:`synth.data.AugmentConfig` (its fields and checks, after
+    """The per-batch crop augmentation: :class:`AugmentConfig` (its fields and checks, after
     SPIN) with recovery's one other default, no hue shift."""
 
     hue: float = 0.0  # kornia's HSV round trip was 40 % of the loader's time; the gains shift hue already
@@ -405,6 +444,43 @@ class BeganConfig:
     def __post_init__(self) -> None:
         if self.lambda_k < 0 or self.gamma < 0 or not 0 <= self.k0 <= 1 or self.lr <= 0 or self.weight_decay < 0 or self.weight < 0:
             raise ValueError("began: lambda_k, gamma, weight_decay, weight >= 0, k0 in [0, 1], lr > 0")
+
+
+@dataclass(frozen=True)
+class MeshDataConfig:
+    """Where the meshes of the autoencoder, its normalisation and the PCA baseline come from.
+
+    Attributes:
+        train, val: fractions of the population for training and validation (the rest is test).
+        library: training motion library folder (``blsm mocap import``), "" for prior poses only.
+        library_share: share of training poses taken from ``library`` (the rest from the prior).
+        test_library: the held-out clips' library (the test meshes' poses).
+        exclude_clips: clips never used for training (a library that holds them is an error).
+        stats_meshes: training meshes the mean / standard deviation are computed from.
+        val_meshes, test_meshes: meshes in the validation and test sets.
+        pca_meshes: training meshes the PCA baseline is fitted on.
+        pca_components: the PCA baseline's components (thesis: the latent size, 128).
+    """
+
+    train: float = 0.85
+    val: float = 0.05
+    library: str = "out/motions_train"
+    library_share: float = 0.5
+    test_library: str = "out/motions_test"
+    exclude_clips: tuple[str, ...] = ("007_12", "005_20")
+    stats_meshes: int = 4000
+    val_meshes: int = 256
+    test_meshes: int = 1000
+    pca_meshes: int = 8000
+    pca_components: int = 128
+
+    def __post_init__(self) -> None:
+        if not (0 < self.train < 1 and 0 < self.val < 1 and self.train + self.val < 1):
+            raise ValueError("meshes.train and meshes.val must be fractions with train + val < 1")
+        if not 0 <= self.library_share <= 1:
+            raise ValueError("meshes.library_share must be in [0, 1]")
+        if min(self.stats_meshes, self.val_meshes, self.test_meshes, self.pca_meshes, self.pca_components) < 1:
+            raise ValueError("meshes.*_meshes and pca_components must be >= 1")
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,7 @@ Several passes (:class:`MultiPassDetector`), after SAHI's sliced inference (Akyo
    candidates that are no person (a foot, a microphone stand, a camera) stay under it.
 
 The defaults (the two levels' scales, the half-tile overlap, 0.1 and 0.2, the mean of the two scores)
-were chosen on the transfer dev set (``benchmarks/detect_devset.py``, docs/recovery.md), the same 14
+were chosen on the transfer dev set (``experiments/predict/detect_devset.py``, docs/recovery.md), the same 14
 photographs the numbers there come from. Boxes come from MultiPose alone: widening a cut person's box to
 the second look's keypoints helped three people of the dev set and lost one, so it is not done.
 """
@@ -295,7 +295,7 @@ def second_look(net: MoveNet, image: np.ndarray, boxes: list[np.ndarray], contex
     """MoveNet SinglePose ``net`` on the square crop of side ``context`` times each box's longer side
     about its centre (antialiased, zeros outside the image): (N, 17, 3) keypoints ``(x, y, score)`` in
     image pixels."""
-    from synth.data import crop_affine, map_points, warp_to_crop
+    from synth.dataset.crops import crop_affine, map_points, warp_to_crop
 
     if not boxes:
         return np.zeros((0, 17, 3))

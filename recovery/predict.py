@@ -65,7 +65,7 @@ import torch
 from blsm.io import atomic_write
 from recovery.predictor import Prediction, Predictor, load_predictor
 from recovery.utils.viz import draw_boxes, face_parts, overlay, parts_overlay, people_overlay
-from synth.data import crop_affine, map_points, warp_to_crop
+from synth.dataset.crops import crop_affine, map_points, warp_to_crop
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".gif", ".tif", ".tiff", ".webp", ".ppm", ".pgm")
 """Files of a folder that ``predict`` reads (case-insensitive)."""

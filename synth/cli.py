@@ -37,7 +37,7 @@ def _generate(args: argparse.Namespace) -> int:
         cfg = dataclasses.replace(cfg, num=args.num)
     if args.skip_bad:
         cfg = dataclasses.replace(cfg, skip_bad=True)
-    from synth.shards import parse_part
+    from synth.dataset.shards import parse_part
 
     part = parse_part(args.part) if args.part else (1, 1)
     if args.replace_stale and not args.resume:

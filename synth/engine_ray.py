@@ -41,8 +41,8 @@ from typing import Any
 
 from synth import worker
 from synth.config import GeneratorConfig
+from synth.dataset.shards import ShardWriter, WriteError, shard_name, write_shard
 from synth.progress import Progress, log
-from synth.shards import ShardWriter, WriteError, shard_name, write_shard
 
 _KEY: str = ""
 TICK_S = 0.25

@@ -21,7 +21,7 @@ subtract 0.5 where a tool puts pixel centres at integers.
                                   (SPIN's COCO preprocessing: v > 0), 0 outside; keypoints we do
                                   not have are 0 with confidence 0
 ``visible``       (N, 24) bool    the keypoint is inside the image and seen (not occluded by the
-                                  person or anything else; :mod:`synth.format`)
+                                  person or anything else; :mod:`synth.dataset.format`)
 ``S``             (N, 24, 4)      the same keypoints in camera metres (not centred) and confidence
 ``pose``          (N, 47)         BLSM unconstrained pose x; ``angles`` (N, 47) radians
 ``bone``          (N, Kb)         bone coefficients; ``shape`` (N, Ks) shape coefficients
@@ -52,12 +52,12 @@ generator's (``docs/video.md``):
 ``keypoints_3d``      (P, T, K, 3)    world metres
 ``keypoints_3d_cam``  (P, T, K, 3)    camera metres, ``R X + t``
 ``keypoints_2d``      (P, T, K, 2)    pixels
-``visible``           (P, T, K) bool  the keypoint is seen (see :mod:`synth.format`)
+``visible``           (P, T, K) bool  the keypoint is seen (see :mod:`synth.dataset.format`)
 ``in_frame``          (P, T, K) bool  the keypoint projects into the image
 ``velocity_3d``       (P, T, K, 3)    world m/s, central differences of the posed body
 ``contact``           (P, T, 9) bool  ground contact per region of ``contact_names``
 ``contact_velocity``  (P, T, 9) bool  the velocity rule's contact, same regions
-``contact_names``     (9,) str        :data:`synth.sequence.CONTACT_REGIONS`
+``contact_names``     (9,) str        :data:`synth.dataset.format.CONTACT_REGIONS`
 ``in_view``           (P, T) bool     at least one pixel of the person is in the image
 ``box_full``          (P, T, 4)       ``[x0, y0, x1, y1]`` of the whole projected mesh, pixels (NaN
                                       where the person is wholly behind the camera)
@@ -91,9 +91,9 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
 from blsm.io import atomic_write
-from synth import format as sample_format
-from synth.data import DatasetIndex
-from synth.sequence import CONTACT_REGIONS
+from synth.dataset import format as sample_format
+from synth.dataset.format import CONTACT_REGIONS
+from synth.dataset.index import DatasetIndex
 
 FORMATS = ("spin", "coco", "sequences")
 SPIN_FILE = "blsm_synth.npz"

@@ -39,7 +39,7 @@ face ``f``); a pixel on the skirt to the bone of the skirt face's largest weight
 thigh). Cloth is the person's surface for keypoint visibility (a clothed elbow is visible, as
 annotators of photographs mark it), unlike hair, which hides the surface keypoints under it. In the
 correspondence label (``corr``), faces are numbered body, hair, layer, skirt
-(:mod:`synth.format`); ``synth validate`` rebuilds all four from the subject and the sample's
+(:mod:`synth.dataset.format`); ``synth validate`` rebuilds all four from the subject and the sample's
 ``garments`` spec.
 
 Everything is a function of the subject and the :class:`GarmentSpec`, whose ``seed`` fixes the

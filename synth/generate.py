@@ -11,7 +11,7 @@ topology, updated in place per image (:mod:`synth.sample`); a worker is replaced
 Before any work, every input file is opened and checked (:func:`check_inputs`) and the output
 folder is locked for this writer (:mod:`synth.lock`); bad input leaves no new file or folder, and a
 failed write (a full disk) keeps the finished shards for ``--resume``. A run stops early only
-where the shards it makes are chosen (``stop_after``, :meth:`synth.shards.ShardWriter.pending`).
+where the shards it makes are chosen (``stop_after``, :meth:`synth.dataset.shards.ShardWriter.pending`).
 """
 
 from __future__ import annotations
@@ -38,16 +38,16 @@ from synth import backgrounds as bg
 from synth import lock as out_lock
 from synth import worker
 from synth.config import GeneratorConfig
+from synth.dataset.shards import ShardWriter, SkipSample, WriteError
 from synth.people import subject_pool_warning
 from synth.progress import Progress, log
 from synth.sample import SUBJECTS, PoseSource
-from synth.shards import ShardWriter, SkipSample, WriteError
 from synth.subjects import anny_subject, load_subject, model_fingerprint, save_subject
 
 SUBJECTS_LOCK = ".lock-subjects"
 ENGINES = ("local", "ray")
 Plan = tuple[list[int], dict[str, Any], list[dict[str, Any]]]
-"""What :meth:`synth.shards.ShardWriter.pending` returns: the shards to make, the finished ones'
+"""What :meth:`synth.dataset.shards.ShardWriter.pending` returns: the shards to make, the finished ones'
 manifest entries, and the samples skipped in those."""
 
 
@@ -160,7 +160,7 @@ def generate(
     """Generate the dataset of ``cfg`` into ``out``; return the manifest.
 
     Worker processes make samples (any sample, from ``(seed, index)`` alone); this process writes
-    them into shards in index order with :meth:`synth.shards.ShardWriter.run` (each shard to a
+    them into shards in index order with :meth:`synth.dataset.shards.ShardWriter.run` (each shard to a
     temporary file renamed when complete, the manifest rewritten after every shard). Workers are replaced after ``render.recycle_after``
     images, which bounds any memory a long run might accumulate in them.
 
@@ -173,7 +173,7 @@ def generate(
         stop_after: stop after this many shards (tests).
         on_image: called in this process as ``on_image(images_done)`` after each image
             (benchmarks).
-        part: ``(I, N)``: make only part ``I`` of ``N`` (:mod:`synth.shards`, Parts): its shards
+        part: ``(I, N)``: make only part ``I`` of ``N`` (:mod:`synth.dataset.shards`, Parts): its shards
             and ``manifest-part-I-of-N.json``; ``synth merge`` joins the parts.
         engine: ``"local"`` (a process pool of ``workers``) or ``"ray"`` (one Ray task per shard,
             :mod:`synth.engine_ray`; ``workers`` is not used).
@@ -188,7 +188,7 @@ def generate(
 
     Raises:
         ValueError: bad input (config, subjects, backgrounds, poses), before any shard is written;
-            the folder held by another run; a failed write (:class:`synth.shards.WriteError`, e.g.
+            the folder held by another run; a failed write (:class:`synth.dataset.shards.WriteError`, e.g.
             a full disk), with the finished shards kept for ``--resume``.
         RuntimeError: a sample failed (without ``cfg.skip_bad``); finished shards are kept.
     """
@@ -219,7 +219,7 @@ def generate(
 
 def set_aside_stale(writer: ShardWriter) -> Path | None:
     """Move what ``writer``'s folder holds to ``<folder>.stale-<UTC time>`` when its manifest
-    describes another run (:meth:`synth.shards.ShardWriter.same_run`); return that folder, or None
+    describes another run (:meth:`synth.dataset.shards.ShardWriter.same_run`); return that folder, or None
     when there was nothing to move (no manifest, or the same run, which ``--resume`` continues).
 
     Nothing is deleted. The folder is locked for the move (:mod:`synth.lock`), so a run writing
@@ -322,9 +322,9 @@ def _generate(
 
 
 def merge(out: str | Path) -> dict[str, Any]:
-    """``synth merge DIR``: join the parts of a partitioned run (:func:`synth.shards.merge_parts`)
+    """``synth merge DIR``: join the parts of a partitioned run (:func:`synth.dataset.shards.merge_parts`)
     under the folder's lock (refused while a part still runs); return the manifest."""
-    from synth.shards import merge_parts
+    from synth.dataset.shards import merge_parts
 
     out = Path(out)
     if not out.is_dir():

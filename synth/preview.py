@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw
 
-from synth import format as fmt
-from synth.shards import MANIFEST, read_shard, sample_key, shard_name
+from synth.dataset import format as fmt
+from synth.dataset.shards import MANIFEST, read_shard, sample_key, shard_name
 
 # Skeleton edges by keypoint name (BLSM joints plus the face points).
 EDGES = (
@@ -46,7 +46,7 @@ def _side_colour(name: str, base: tuple[int, int, int]) -> tuple[int, int, int]:
 
 
 def draw_frame(sample: dict, scale: int = 2) -> Image.Image:
-    """The image of a decoded sample (:func:`synth.format.decode_sample`; ``rgb`` and ``json`` are
+    """The image of a decoded sample (:func:`synth.dataset.format.decode_sample`; ``rgb`` and ``json`` are
     enough), enlarged ``scale`` times, with every person's keypoints, skeleton and boxes."""
     rgb, doc = sample["rgb"], sample["json"]
     h, w = rgb.shape[:2]
@@ -85,7 +85,7 @@ def draw_frame(sample: dict, scale: int = 2) -> Image.Image:
 
 
 def draw_sample(sample: dict, scale: int = 2) -> Image.Image:
-    """One row of four tiles for a decoded sample (:func:`synth.format.decode_sample`)."""
+    """One row of four tiles for a decoded sample (:func:`synth.dataset.format.decode_sample`)."""
     rgb, doc = sample["rgb"], sample["json"]
     h, w = rgb.shape[:2]
     big = (w * scale, h * scale)

@@ -11,7 +11,7 @@ A worker's :class:`SampleMaker` makes any sample from ``(seed, index)`` alone, i
    (:class:`synth.render.PeopleRenderer`, one per mesh topology, updated in place), the backdrop
    composited behind them with their shadows and the lens's blur, and the labels
    (:func:`synth.labels.person_labels`).
-5. **Encoding** (:meth:`SampleMaker.encode`): the sample's fields (:mod:`synth.format`).
+5. **Encoding** (:meth:`SampleMaker.encode`): the sample's fields (:mod:`synth.dataset.format`).
 
 Sequences (:class:`synth.sequence.SequenceMaker`, built on a worker's sample maker) reuse steps 1, 4
 and 5 per frame.
@@ -31,10 +31,10 @@ import torch
 
 from blsm.color import linear_to_srgb, srgb_to_linear
 from synth import backgrounds as bg
-from synth import format as fmt
 from synth import labels as lab
 from synth.camera import facing_yaw_deg, outline_index, sample_camera
 from synth.config import GeneratorConfig
+from synth.dataset import format as fmt
 from synth.people import draw_subject, footprint, place_people
 from synth.postures import seats, vary
 from synth.render import PeopleRenderer, RenderMesh, people_window
@@ -431,7 +431,7 @@ class SampleMaker:
         return r
 
     def make(self, index: int, rng: np.random.Generator) -> dict[str, bytes]:
-        """Sample ``index``'s fields, from ``rng`` (:func:`synth.shards.sample_rng`) alone."""
+        """Sample ``index``'s fields, from ``rng`` (:func:`synth.dataset.shards.sample_rng`) alone."""
         cfg = self.cfg
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
         people: list[Person] = []
@@ -651,7 +651,7 @@ def _cloth_labels(p: Person) -> dict[str, Any]:
 
 def _l(a: Any) -> Any:
     """Array to nested lists of Python floats rounded to 1e-6 (stable JSON across runs; the
-    precision the validator allows for is stated in :mod:`synth.format`)."""
+    precision the validator allows for is stated in :mod:`synth.dataset.format`)."""
     return fmt.json_round(a)
 
 

@@ -53,10 +53,10 @@ import numpy as np
 
 from synth.camera import outline_index
 from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
+from synth.dataset.format import CONTACT_REGIONS
 from synth.people import draw_subject, footprint
 from synth.sample import Person
 
-CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
                    "hand_l": "wrist_l", "hand_r": "wrist_r", "knee_l": "knee_l", "knee_r": "knee_r",
                    "pelvis": "pelvis"}  # fmt: skip
@@ -472,7 +472,7 @@ class SequenceMaker:
     def _frame(
         self, seq: int, f: int, people: list[Actor], path: Any, back: Any, rng: np.random.Generator
     ) -> dict[str, bytes]:
-        from synth.format import json_round as _l
+        from synth.dataset.format import json_round as _l
 
         m, T, F = self.m, self.T, self.F
         index = seq * T + f

@@ -33,12 +33,12 @@ def member(name: str) -> str:
 
 
 class Topology:
-    """A reparameterised model and its W' (:func:`blsm.learn.reparam_model.read_correspondence`)."""
+    """A reparameterised model and its W' (:func:`blsm.learn.reparam.model.read_correspondence`)."""
 
     def __init__(self, path: str | Path, name: str, model: Any) -> None:
         """``model``: the generator's (original) BLSM; the file must be reparameterised from its topology."""
         import blsm
-        from blsm.learn.reparam_model import read_correspondence
+        from blsm.learn.reparam.model import read_correspondence
 
         self.name, self.path = name, Path(path)
         corners, bary = read_correspondence(self.path)

@@ -9,7 +9,7 @@ Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLS
 - all fields are present and decode, and their sizes agree with ``image``;
 - ``keypoints_3d_cam = R keypoints_3d + t`` and ``keypoints_2d`` is their projection with ``K``
   for keypoints in front of the camera, up to what the JSON's 6-decimal rounding of ``K``, ``R``,
-  ``t`` and the keypoints allows (per keypoint, :func:`synth.format.projection_tolerance`: under
+  ``t`` and the keypoints allows (per keypoint, :func:`synth.dataset.format.projection_tolerance`: under
   1e-3 px for a person filling the image, however long the lens); the rebuilt keypoints equal the
   stored ones;
 - visible keypoints are in frame and lie inside their person's mask;
@@ -22,7 +22,7 @@ Per sample (the person's mesh is rebuilt from ``subjects/`` and the sample's BLS
   rebuilt from the sample's ``hair`` spec, :mod:`synth.hair`, then its clothes rebuilt from the
   ``garments`` spec, :mod:`synth.garments`: the cloth layer and the skirt) projects to the pixel's centre, up to
   what the labels' single precision, the rebuild from rounded parameters and the rounding of ``K``,
-  ``R``, ``t`` allow (per pixel, :func:`synth.format.correspondence_tolerance`: 1.4e-3 px for a
+  ``R``, ``t`` allow (per pixel, :func:`synth.dataset.format.correspondence_tolerance`: 1.4e-3 px for a
   surface facing a 600 mm lens 60 m away in a 128 px image, more where the surface is seen edge-on),
   at the stored depth (``DEPTH_M``) (:func:`check_correspondences`); parts and bones agree with the
   mask;
@@ -44,10 +44,10 @@ import numpy as np
 
 from blsm.camera import Camera
 from blsm.io import sha256_file
-from synth import format as fmt
+from synth.dataset import format as fmt
+from synth.dataset.shards import FORMAT as SHARDS_FORMAT
+from synth.dataset.shards import MANIFEST, read_shard
 from synth.raster import rasterise
-from synth.shards import FORMAT as SHARDS_FORMAT
-from synth.shards import MANIFEST, read_shard
 
 DEPTH_M = 1e-4
 TOPOLOGY_M = 1e-4  # a second topology's vertex rebuilt from the 6-decimal JSON parameters, as keypoints_3d
@@ -222,7 +222,7 @@ def validate(dataset: str | Path, max_failures: int = 50, log: Any = None) -> Re
 
 def check_keypoints(cam: Camera, person: dict[str, Any]) -> list[str]:
     """What is wrong with a person's ``keypoints_3d_cam`` and ``keypoints_2d`` against the stored
-    ``keypoints_3d`` and camera, beyond the JSON's rounding (:mod:`synth.format`, Precision)."""
+    ``keypoints_3d`` and camera, beyond the JSON's rounding (:mod:`synth.dataset.format`, Precision)."""
     out = []
     kp3 = np.asarray(person["keypoints_3d"], np.float64)
     kc = kp3 @ cam.R.T + cam.t
@@ -248,7 +248,7 @@ def check_correspondences(
     """What is wrong with the correspondences ``corr`` (H, W, 3) and ``depth`` (H, W) of the pixels
     ``sel`` (H, W) bool of one person against its rebuilt mesh (``verts`` (V, 3) world, ``faces``),
     all of it in front of the camera: a face index outside the mesh, a point that does not project
-    onto its pixel's centre (:func:`synth.format.correspondence_tolerance`), a depth that is not the
+    onto its pixel's centre (:func:`synth.dataset.format.correspondence_tolerance`), a depth that is not the
     point's."""
     f = corr[..., 0][sel].astype(np.int64)
     if f.size == 0:

@@ -19,9 +19,9 @@ from typing import Any
 import torch
 
 from synth.config import GeneratorConfig
+from synth.dataset.shards import sample_rng
 from synth.sample import SampleMaker
 from synth.sequence import SequenceMaker, sequence_rng
-from synth.shards import sample_rng
 
 Result = tuple[int, dict[str, bytes] | None, str, str]
 """``(index, fields, "", "")`` for a sample made, ``(index, None, error type, message)`` for one that

@@ -1,13 +1,17 @@
 """Per-batch augmentation of cache crops (in the loader worker) and the camera, sensor and occlusion
 effects.
 
-The geometry is that of :meth:`synth.data.SynthDataset.get`: a second affine map ``A2`` from cache
+The geometry is that of :meth:`synth.dataset.images.SynthDataset.get`: a second affine map ``A2`` from cache
 to crop pixels (scale, in-plane rotation, flip, translation; pixel centres at integer + 0.5), the
 camera-frame map ``L = M Rz``, so ``keypoints_3d <- L keypoints_3d``, ``transl <- L transl``,
 ``R_global <- L R_global M`` and ``K <- A2 K L^T``; a flip swaps left and right keypoints and parts
 and mirrors the 47 atoms with the model's ``dof_mirror``. So ``K (keypoints_3d + transl)`` projects
 onto ``keypoints_2d`` exactly after augmentation too. Each item's augmentation is a function of
 ``(seed, epoch, item)`` only (:mod:`recovery.datasets.sampling`).
+
+The random draw of one item (:func:`draw_params`, SPIN's ranges of :class:`recovery.config.AugmentConfig`)
+and its colour (:func:`color_jitter`) are also offered on the dataset's own items, one person at a
+time, by :class:`AugmentedDataset`.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,9 +29,87 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from kornia.geometry.transform import warp_affine
 
 from blsm.skeleton import mirror_name
+from recovery.config import AugmentConfig
 from recovery.datasets.cache import stack_items
-from synth import format as fmt
-from synth.data import AugmentConfig, CropParams, camera_rotation, color_jitter, crop_affine, draw_params
+from synth.dataset import format as fmt
+from synth.dataset.crops import camera_rotation, crop_affine
+from synth.dataset.images import SeededDataset, SynthDataset
+
+
+@dataclass(frozen=True)
+class CropParams:
+    """The augmentation of one item: scale factor, rotation (degrees, counter-clockwise on screen),
+    flip, centre shift (fraction of the side), per-channel colour factors and the kornia colour
+    jitter ``(brightness added, contrast factor, saturation factor, hue shift in radians)``."""
+
+    scale: float = 1.0
+    rotation_deg: float = 0.0
+    flip: bool = False
+    shift: tuple[float, float] = (0.0, 0.0)
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    jitter: tuple[float, float, float, float] = (0.0, 1.0, 1.0, 0.0)
+
+
+def draw_params(cfg: AugmentConfig | None, rng: np.random.Generator) -> CropParams:
+    """Draw one item's :class:`CropParams` (identity without ``cfg``)."""
+    if cfg is None:
+        return CropParams()
+    u = rng.uniform(size=9)
+    sym = (2 * u - 1).tolist()  # uniform in [-1, 1]
+    j = (2 * rng.uniform(size=4) - 1).tolist()
+    return CropParams(
+        scale=1 + sym[0] * cfg.scale,
+        rotation_deg=sym[1] * cfg.rotation_deg if u[2] < cfg.rotation_prob else 0.0,
+        flip=bool(u[3] < cfg.flip_prob),
+        shift=(sym[4] * cfg.translation, sym[5] * cfg.translation),
+        color=(1 + sym[6] * cfg.color, 1 + sym[7] * cfg.color, 1 + sym[8] * cfg.color),
+        jitter=(j[0] * cfg.brightness, 1 + j[1] * cfg.contrast, 1 + j[2] * cfg.saturation, j[3] * cfg.hue * 2 * math.pi),
+    )
+
+
+def color_jitter(image: torch.Tensor, jitter: tuple[float, float, float, float]) -> torch.Tensor:
+    """Brightness, contrast, saturation and hue of a (3, H, W) image in [0, 1] with kornia, in that
+    order; the identity ``(0, 1, 1, 0)`` returns the image unchanged."""
+    from kornia import enhance
+
+    b, c, s, h = jitter
+    x = image[None]
+    if b != 0.0:
+        x = enhance.adjust_brightness(x, b)
+    if c != 1.0:
+        x = enhance.adjust_contrast(x, c)
+    if s != 1.0:
+        x = enhance.adjust_saturation(x, s)
+    if h != 0.0:
+        x = enhance.adjust_hue(x, h)
+    return x[0].clamp(0.0, 1.0)
+
+
+class AugmentedDataset(SeededDataset):
+    """SPIN-style random crops of a :class:`synth.dataset.images.SynthDataset`'s items: per item one
+    :func:`draw_params` draw (scale, rotation, flip, shift: the reader's exact crop geometry, labels
+    included), then the per-channel gains and :func:`color_jitter`.
+
+        ds = AugmentedDataset(SynthDataset("data/train", crop=224), AugmentConfig(), seed=0)
+
+    Args:
+        dataset: the reader (its ``crop``, ``person``, ``keypoints`` and filters apply).
+        augment: the ranges.
+        seed: None: fresh draws every call (torch's RNG, seeded per DataLoader worker); an int:
+            item ``i`` in epoch ``e`` (:meth:`set_epoch`) is a function of ``(seed, e, i)``.
+    """
+
+    def __init__(self, dataset: SynthDataset, augment: AugmentConfig | None = None, seed: int | None = None) -> None:
+        self.dataset, self.augment = dataset, augment if augment is not None else AugmentConfig()
+        self.items, self.seed, self.epoch = dataset.items, seed, 0
+        self.keypoint_names = dataset.keypoint_names
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        p = draw_params(self.augment, self.item_rng(i))
+        item = self.dataset.get(i, scale=p.scale, rotation_deg=p.rotation_deg, flip=p.flip, shift=p.shift)
+        item["image"] = colour(item["image"][None], [p])[0]
+        return item
+
 
 
 class BatchAugment:
@@ -129,8 +212,8 @@ class BatchAugment:
 
 
 def colour(img: torch.Tensor, params: Sequence[CropParams]) -> torch.Tensor:
-    """SPIN's per-channel gains, then :func:`synth.data.color_jitter` per item (brightness, contrast,
-    saturation, hue): the colour of :meth:`synth.data.SynthDataset.get`, on (B, 3, S, S) crops."""
+    """SPIN's per-channel gains, then :func:`color_jitter` per item (brightness, contrast, saturation,
+    hue), on (B, 3, S, S) crops in [0, 1]."""
     gains = torch.tensor([p.color for p in params], dtype=img.dtype)[:, :, None, None]
     x = (img * gains).clamp(0.0, 1.0)
     return torch.stack([color_jitter(x[i], p.jitter) for i, p in enumerate(params)])

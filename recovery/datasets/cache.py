@@ -1,7 +1,7 @@
 """Pre-cropped caches of ``synth`` datasets: what training reads.
 
 Decoding a PNG and warping it per item costs more CPU than a small network's step on two cores, so
-training reads a **cache**: every person of a dataset cropped once by :class:`synth.data.SynthDataset`
+training reads a **cache**: every person of a dataset cropped once by :class:`synth.dataset.images.SynthDataset`
 (no augmentation) at ``context`` times the training crop's field of view, stored as uint8 arrays
 (``images.npy`` (N, S, S, 3), ``masks.npy`` and ``parts.npy`` (N, S, S)) and the labels
 (``labels.npz``), with ``meta.json`` written last. A cache is rebuilt when its dataset's manifest or
@@ -23,11 +23,11 @@ import torch
 
 from blsm.io import sha256_file
 from recovery.config import DataConfig
-from synth.data import SynthDataset
-from synth.shards import MANIFEST
+from synth.dataset.images import SynthDataset
+from synth.dataset.shards import MANIFEST
 
 CACHE_FORMAT = "recovery-crop-cache"
-CACHE_VERSION = 2  # 2: crops prefiltered where they shrink the image (synth.data.warp_to_crop)
+CACHE_VERSION = 2  # 2: crops prefiltered where they shrink the image (synth.dataset.crops.warp_to_crop)
 VIEWS = ("normal", "rare")
 
 
@@ -66,7 +66,7 @@ def build_cache(dataset: str | Path, out: str | Path, crop: int, context: float,
         if all(meta.get(k) == v for k, v in key.items()):
             return out
         log(f"[recovery] {out}: cache is stale (dataset or crop changed); rebuilding")
-    ds = SynthDataset(dataset, crop=side, augment=None, box_scale=box_scale)
+    ds = SynthDataset(dataset, crop=side, box_scale=box_scale)
     n = len(ds)
     if n == 0:
         raise ValueError(f"{dataset}: the dataset holds no usable person")

@@ -19,49 +19,13 @@ draws "as many as training wants".
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import nn
 
-
-@dataclass(frozen=True)
-class MeshDataConfig:
-    """Where the meshes of the autoencoder, its normalisation and the PCA baseline come from.
-
-    Attributes:
-        train, val: fractions of the population for training and validation (the rest is test).
-        library: training motion library folder (``blsm mocap import``), "" for prior poses only.
-        library_share: share of training poses taken from ``library`` (the rest from the prior).
-        test_library: the held-out clips' library (the test meshes' poses).
-        exclude_clips: clips never used for training (a library that holds them is an error).
-        stats_meshes: training meshes the mean / standard deviation are computed from.
-        val_meshes, test_meshes: meshes in the validation and test sets.
-        pca_meshes: training meshes the PCA baseline is fitted on.
-        pca_components: the PCA baseline's components (thesis: the latent size, 128).
-    """
-
-    train: float = 0.85
-    val: float = 0.05
-    library: str = "out/motions_train"
-    library_share: float = 0.5
-    test_library: str = "out/motions_test"
-    exclude_clips: tuple[str, ...] = ("007_12", "005_20")
-    stats_meshes: int = 4000
-    val_meshes: int = 256
-    test_meshes: int = 1000
-    pca_meshes: int = 8000
-    pca_components: int = 128
-
-    def __post_init__(self) -> None:
-        if not (0 < self.train < 1 and 0 < self.val < 1 and self.train + self.val < 1):
-            raise ValueError("meshes.train and meshes.val must be fractions with train + val < 1")
-        if not 0 <= self.library_share <= 1:
-            raise ValueError("meshes.library_share must be in [0, 1]")
-        if min(self.stats_meshes, self.val_meshes, self.test_meshes, self.pca_meshes, self.pca_components) < 1:
-            raise ValueError("meshes.*_meshes and pca_components must be >= 1")
+from recovery.config import MeshDataConfig
 
 
 def _library_poses(folder: str, exclude: tuple[str, ...], keep_only: tuple[str, ...] | None = None) -> torch.Tensor:

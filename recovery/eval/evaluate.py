@@ -1,6 +1,6 @@
 """``recovery evaluate CHECKPOINT DATASET --out DIR``: metrics, baselines, splits and a results sheet.
 
-Every person of a ``synth`` dataset is cropped as in training (:class:`synth.data.SynthDataset`, SPIN's
+Every person of a ``synth`` dataset is cropped as in training (:class:`synth.dataset.images.SynthDataset`, SPIN's
 1.2 times the visible box, no augmentation) and predicted. Metrics (``DIR/metrics.json``):
 
 - ``mpjpe_mm``: mean joint error after aligning the pelvis, on :data:`recovery.eval.joints.EVAL_JOINTS`;
@@ -54,7 +54,7 @@ from recovery.models.hmr import body_outputs
 from recovery.predictor import Predictor, load_predictor
 from recovery.utils.raster import rasterize_labels
 from recovery.utils.viz import face_parts, label_image, overlay, parts_overlay, side_view
-from synth.data import SynthDataset
+from synth.dataset.images import SynthDataset
 
 
 def fixed_skeleton(joints: torch.Tensor, iterations: int = 20) -> torch.Tensor:
@@ -213,14 +213,14 @@ def evaluate(checkpoint: str | Path, dataset: str | Path, out: str | Path, batch
 
     ``flip``: HMR-BLSM with flip test-time augmentation (:func:`recovery.models.hmr.flip_average`);
     recorded as ``flip_test`` in the metrics. ``antialias``: the crops' prefilter
-    (:class:`synth.data.SynthDataset`), recorded as ``antialias`` where off. ``fit``: the test-time fit's
+    (:class:`synth.dataset.images.SynthDataset`), recorded as ``antialias`` where off. ``fit``: the test-time fit's
     iterations (:meth:`recovery.predictor.Predictor.use_fit`; None: the checkpoint's own), recorded as ``fit``.
     """
     t0 = time.perf_counter()
     pr = load_predictor(checkpoint).use_flip(flip)
     if fit is not None:
         pr.use_fit(fit)
-    ds = SynthDataset(dataset, crop=pr.crop, augment=None, box_scale=1.2, antialias=antialias)
+    ds = SynthDataset(dataset, crop=pr.crop, box_scale=1.2, antialias=antialias)
     if list(ds.keypoint_names) != list(pr.body.keypoint_names):
         raise ValueError(f"{dataset}: its keypoint_names are not the checkpoint's BLSM model's")
     info = person_info(ds)

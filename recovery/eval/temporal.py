@@ -225,7 +225,7 @@ def temporal_metrics(
 
 
 def sequence_items(ds: Any) -> dict[str, np.ndarray] | None:
-    """Per item of a :class:`synth.data.SynthDataset`: ``sequence``, ``track``, ``frame`` and ``fps``
+    """Per item of a :class:`synth.dataset.images.SynthDataset`: ``sequence``, ``track``, ``frame`` and ``fps``
     from its sample's labels (docs/video.md); None when the dataset holds single images.
 
     Raises:

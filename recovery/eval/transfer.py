@@ -125,7 +125,7 @@ def read_boxes(folder: str | Path) -> list[Person]:
 def synthetic_people(dataset: str | Path, folder: Path, max_people: int) -> list[Person]:
     """Up to ``max_people`` people spread evenly over ``dataset`` (a ``synth`` dataset), their
     images written to ``folder`` as PNG files, with their label boxes, cameras and true joints."""
-    from synth.data import DatasetIndex
+    from synth.dataset.index import DatasetIndex
 
     index = DatasetIndex(dataset)
     everyone = []
@@ -266,10 +266,10 @@ def predict_joints(pr: Any, people: list[Person], centre: np.ndarray, side: np.n
                    batch: int = 32, antialias: bool = True) -> tuple[np.ndarray, list[dict[str, Any]]]:
     """(N, 17, 2) the joints of predictor ``pr`` (:func:`recovery.predictor.load_predictor`) in
     image pixels (NaN where not scored) and, per scored person, what the sheet draws (crop, mesh,
-    K_crop, affine). ``antialias``: :func:`synth.data.warp_to_crop`'s prefilter (off: bilinear
+    K_crop, affine). ``antialias``: :func:`synth.dataset.crops.warp_to_crop`'s prefilter (off: bilinear
     sampling alone, as before 2026-12-02)."""
     from recovery.predict import read_image
-    from synth.data import crop_affine, map_points, warp_to_crop
+    from synth.dataset.crops import crop_affine, map_points, warp_to_crop
 
     names = list(getattr(pr, "keypoint_names", None) or pr.body.keypoint_names)
     ids = [names.index(n) for n in COCO_NAMES]
@@ -453,7 +453,7 @@ def contact_sheet(domain: Domain, views: list[dict[str, Any]], faces: np.ndarray
     from PIL import Image, ImageDraw
 
     from recovery.utils.viz import overlay
-    from synth.data import map_points
+    from synth.dataset.crops import map_points
 
     views = views[:count]
     if not views:

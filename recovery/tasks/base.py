@@ -23,7 +23,7 @@ from recovery.config import RecoveryConfig
 from recovery.datasets.cache import CropCache, build_caches
 from recovery.datasets.loaders import loaders
 from recovery.utils.geometry import translation_to_cam
-from synth.data import crop_affine
+from synth.dataset.crops import crop_affine
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from recovery.utils.raster import rasterize
-from synth.format import PART_PALETTE
+from synth.dataset.format import PART_PALETTE
 
 
 def face_parts(faces: np.ndarray, vertex_parts: np.ndarray) -> np.ndarray:
@@ -57,7 +57,7 @@ def overlay(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, K: np.nd
 
 def parts_overlay(image: np.ndarray, vertices: np.ndarray, faces: np.ndarray, K: np.ndarray,
                   face_labels: np.ndarray, alpha: float = 0.6) -> np.ndarray:
-    """The mesh's parts (:data:`synth.format.PART_PALETTE`) over ``image``, shaded."""
+    """The mesh's parts (:data:`synth.dataset.format.PART_PALETTE`) over ``image``, shaded."""
     return overlay(image, vertices, faces, K, alpha, PART_PALETTE[face_labels].astype(np.float64) / 255.0)
 
 

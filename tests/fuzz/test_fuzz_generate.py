@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "synth"))
 import fakes  # noqa: E402
 
 from blsm.camera import Camera  # noqa: E402
-from synth import format as fmt  # noqa: E402
 from synth import lock as out_lock  # noqa: E402
 from synth.cli import main  # noqa: E402
+from synth.dataset import format as fmt  # noqa: E402
 from synth.validate import check_keypoints  # noqa: E402
 
 SIZE = 64
@@ -496,7 +496,7 @@ class _FullDisk:
 def test_full_disk_is_one_line_and_resume_gives_the_same_bytes(tmp_path, fake_run, capfd, reference, monkeypatch, where):
     import contextlib
 
-    from synth import shards
+    from synth.dataset import shards
 
     real = shards.atomic_write
     calls: dict[str, int] = {}

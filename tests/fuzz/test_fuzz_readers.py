@@ -30,7 +30,8 @@ import recovery.cli  # noqa: E402
 import synth.cli  # noqa: E402
 from blsm.mocap.library import load_clip  # noqa: E402
 from blsm.mocap.prior import load_prior  # noqa: E402
-from synth.data import DatasetIndex, SynthDataset  # noqa: E402
+from synth.dataset.images import SynthDataset  # noqa: E402
+from synth.dataset.index import DatasetIndex  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 CMU = ROOT.parent / "shared" / "mocap" / "cmu"

@@ -10,6 +10,7 @@ import torch
 import torch.nn.functional as F
 
 from recovery.models.backbones import BACKBONE_NAMES, build_backbone, lite_weights_path, load_pretrained
+from recovery.models.backbones.base import IMAGENET_MEAN
 from recovery.models.backbones.efficientnet_lite import (
     LITE_MEAN,
     LITE_STD,
@@ -17,7 +18,6 @@ from recovery.models.backbones.efficientnet_lite import (
     EfficientNetLite,
     tf_same_padding,
 )
-from synth.data import IMAGENET_MEAN
 
 
 @pytest.fixture(autouse=True, scope="module")

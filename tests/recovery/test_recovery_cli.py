@@ -15,7 +15,7 @@ import torch
 from recovery_helpers import train_config, write_config
 
 from recovery.cli import main
-from synth.shards import ShardWriter, SkipSample
+from synth.dataset.shards import ShardWriter, SkipSample
 
 W, H = 40, 48  # the test image, pixels
 

@@ -13,11 +13,11 @@ from recovery_helpers import CONTEXT, CROP
 
 from blsm.skeleton import mirror_name
 from recovery.config import AugmentSpec
-from recovery.datasets.augment import BatchAugment
+from recovery.datasets.augment import BatchAugment, CropParams
 from recovery.datasets.cache import CropCache, build_cache, stack_items
 from recovery.datasets.sampling import ResumableSampler, spread_indices
 from recovery.utils.geometry import project
-from synth.data import CropParams, SynthDataset
+from synth.dataset.images import SynthDataset
 
 MIRROR = torch.diag(torch.tensor([-1.0, 1.0, 1.0]))
 TURN = CropParams(rotation_deg=23.0, scale=0.85, shift=(0.04, -0.03))
@@ -298,8 +298,7 @@ def test_augment_spec_is_synth_augment_config_with_no_hue(tmp_path):
     sets some of its keys; synth's checks apply."""
     import dataclasses
 
-    from recovery.config import load_config
-    from synth.data import AugmentConfig
+    from recovery.config import AugmentConfig, load_config
 
     assert isinstance(AugmentSpec(), AugmentConfig)
     assert dataclasses.asdict(AugmentSpec()) == {**dataclasses.asdict(AugmentConfig()), "hue": 0.0}
@@ -333,11 +332,43 @@ def _kornia_batch_colour(img, params):
 
 @pytest.mark.parametrize("hue", [0.0, 0.05])
 def test_colour_is_synth_colour_jitter_per_item_and_the_batched_one_bit_for_bit(hue):
-    from recovery.datasets.augment import colour
-    from synth.data import draw_params
+    from recovery.datasets.augment import colour, draw_params
 
     spec = AugmentSpec(hue=hue)
     img = torch.rand(6, 3, 16, 16, generator=torch.Generator().manual_seed(1))
     params = [draw_params(spec, np.random.default_rng([4, i])) for i in range(6)]
     assert torch.equal(colour(img, params), _kornia_batch_colour(img, params))
     assert torch.equal(colour(img, [CropParams()] * 6), img)  # the identity: no augmentation
+
+
+def test_augmented_dataset_is_seeded_and_changes_only_the_image_by_colour(fake_root):
+    """AugmentedDataset: a function of (seed, epoch, item) when seeded, fresh draws otherwise; with
+    only the colour ranges open, every label equals the plain crop's; its items load with workers."""
+    from torch.utils.data import DataLoader
+
+    from recovery.config import AugmentConfig
+    from recovery.datasets.augment import AugmentedDataset, color_jitter
+
+    plain = SynthDataset(fake_root, crop=32)
+    ds = AugmentedDataset(plain, AugmentConfig(), seed=5)
+    torch.testing.assert_close(ds[2], ds[2])
+    first = ds[2]["affine"]
+    ds.set_epoch(1)
+    assert not torch.equal(ds[2]["affine"], first)
+    free = AugmentedDataset(plain, AugmentConfig())
+    assert not torch.equal(free[2]["affine"], free[2]["affine"])
+    colour_only = AugmentedDataset(plain, AugmentConfig(scale=0, rotation_deg=0, flip_prob=0, translation=0), seed=1)
+    a, b = plain[0], colour_only[0]
+    assert not torch.equal(a["image"], b["image"])
+    for k in a:
+        if k != "image":
+            assert torch.equal(a[k], b[k]), k
+    img = a["image"]
+    assert torch.equal(color_jitter(img, (0.0, 1.0, 1.0, 0.0)), img)  # the identity is exact
+    assert color_jitter(img, (0.1, 1.0, 1.0, 0.0)).mean() > img.mean() + 0.05
+    assert color_jitter(img, (0.0, 0.5, 1.0, 0.0)).std() < img.std()
+    grey = color_jitter(img, (0.0, 1.0, 0.0, 0.0))
+    assert (grey.max(0).values - grey.min(0).values).abs().max() < 1e-5  # no saturation: grey
+    assert not torch.allclose(color_jitter(img, (0.0, 1.0, 1.0, 0.5)), img, atol=1e-3)
+    batches = list(DataLoader(ds, batch_size=2, num_workers=2))
+    assert sum(len(x["image"]) for x in batches) == len(plain) and batches[0]["image"].shape[1:] == (3, 32, 32)

@@ -227,7 +227,7 @@ def _label_rows(ds):
     """(sequence, track, frame, fps, (J, 3) pelvis-aligned float32 camera joints) per evaluated person,
     read straight from the samples' JSON (the dataset evaluates every person with a pixel)."""
     from recovery.eval.joints import EVAL_JOINTS
-    from synth.data import DatasetIndex
+    from synth.dataset.index import DatasetIndex
 
     index = DatasetIndex(ds)
     rows = []

@@ -213,12 +213,12 @@ def test_no_reference_environment(real_folder, fake_root, tmp_path, capsys, monk
 
 
 def test_ablation_rows_share_one_budget():
-    """Every row of the transfer ablation (benchmarks/transfer_ablation.py) has a config that parses,
+    """Every row of the transfer ablation (experiments/transfer/transfer_ablation.py) has a config that parses,
     and every row trains on one budget (docs/transfer.md, "The ablation"): 800 steps of 32 crops;
     the fine-tuning rows start from the 9000-step network at one rate and schedule. The GPU pair
     shares its own budget, the packaged network's 288k crops, from ImageNet."""
     root = Path(__file__).resolve().parents[2]
-    path = root / "benchmarks/transfer_ablation.py"
+    path = root / "experiments/transfer/transfer_ablation.py"
     spec = importlib.util.spec_from_file_location("transfer_ablation", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -238,7 +238,7 @@ def test_ablation_rows_share_one_budget():
 
 
 def test_gpu_carry_round_trip(tmp_path, model, fake_root):
-    """benchmarks/figures/gpu_carry.py: the crop caches of two configs' datasets travel, one of them
+    """experiments/transfer/gpu_carry.py: the crop caches of two configs' datasets travel, one of them
     as the first rows of the other (the same seed, fewer samples), and unpack on another root into
     caches that training accepts as they are (not rebuilt: only the manifests travel): parts, masks
     and labels exact, images within WebP's loss."""
@@ -250,7 +250,7 @@ def test_gpu_carry_round_trip(tmp_path, model, fake_root):
 
     root = Path(__file__).resolve().parents[2]
     sys.path.insert(0, str(root))
-    from benchmarks.figures import gpu_carry
+    from experiments.transfer import gpu_carry
 
     here, there = tmp_path / "here", tmp_path / "there"
     shutil.copytree(fake_root, here / "data/big")  # 6 images

@@ -1,4 +1,4 @@
-"""A small fake dataset in the sample format of :mod:`synth.format`, made without Mitsuba.
+"""A small fake dataset in the sample format of :mod:`synth.dataset.format`, made without Mitsuba.
 
 Each sample holds one or two BLSM people posed at random and seen by an OpenCV camera whose
 principal point is off centre. The labels follow the format exactly: keypoints are the model's,
@@ -27,9 +27,10 @@ from PIL import Image, ImageDraw
 import blsm
 from blsm import skeleton
 from blsm.camera import Camera, look_at_camera
-from synth import format as fmt
-from synth.sequence import CONTACT_REGIONS, REGION_KEYPOINT
-from synth.shards import ShardWriter
+from synth.dataset import format as fmt
+from synth.dataset.format import CONTACT_REGIONS
+from synth.sequence import REGION_KEYPOINT
+from synth.dataset.shards import ShardWriter
 
 DOT = 7
 BACKGROUND = 40

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from synth.camera import CameraConfig, facing_yaw_deg, outline_index, sample_camera
-from synth.shards import sample_rng
+from synth.dataset.shards import sample_rng
 
 
 @pytest.fixture(scope="module")

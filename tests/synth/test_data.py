@@ -1,5 +1,6 @@
 """SynthDataset: crops that keep keypoints, masks, parts and 3D labels consistent, with and without
-rotation and flip; indexing, filtering, workers, seeding and one-line errors."""
+rotation and flip; indexing, filtering, workers and one-line errors (the random draws of
+augmentation: tests/recovery/test_recovery_data.py)."""
 
 from __future__ import annotations
 
@@ -14,15 +15,17 @@ from torch.utils.data import DataLoader
 
 from blsm.joint_limits import angles_from_unconstrained
 from blsm.skeleton import mirror_name
-from synth import format as fmt
-from synth.data import AugmentConfig, CropParams, DatasetIndex, SynthDataset, crop_affine, warp_to_crop
+from synth.dataset import format as fmt
+from synth.dataset.crops import crop_affine, warp_to_crop
+from synth.dataset.images import SynthDataset
+from synth.dataset.index import DatasetIndex
 
 torch.set_num_threads(1)
 CROP = 224
-TURNS = [
-    CropParams(),
-    CropParams(rotation_deg=23.0, scale=0.85, shift=(0.04, -0.03)),
-    CropParams(rotation_deg=-31.0, scale=1.2, shift=(-0.02, 0.05), flip=True),
+TURNS = [  # SynthDataset.get's crop geometry
+    {},
+    {"rotation_deg": 23.0, "scale": 0.85, "shift": (0.04, -0.03)},
+    {"rotation_deg": -31.0, "scale": 1.2, "shift": (-0.02, 0.05), "flip": True},
 ]
 
 
@@ -101,7 +104,7 @@ def test_warp_antialiases_a_shrinking_crop_and_keeps_its_geometry():
 
 
 def test_dataloader_with_two_workers_yields_documented_shapes(root):
-    ds = SynthDataset(root, crop=64, augment=AugmentConfig(), normalize=True)
+    ds = SynthDataset(root, crop=64)
     batches = list(DataLoader(ds, batch_size=4, num_workers=2))
     assert sum(len(b["image"]) for b in batches) == len(ds)
     b, k = batches[0], len(ds.keypoint_names)
@@ -132,8 +135,8 @@ def test_items_are_person_instances_and_filters_apply(root, ds):
 def test_crop_puts_each_keypoint_on_its_dot(ds, params):
     for i in (0, 2):
         clean, _ = clean_dots(ds, i)
-        item = ds.get(i, params)
-        source = ds._kp_perm if params.flip else np.arange(len(ds.keypoint_names))
+        item = ds.get(i, **params)
+        source = ds._kp_perm if params.get("flip") else np.arange(len(ds.keypoint_names))
         checked = 0
         for k in range(len(source)):
             u, v = item["keypoints_2d"][k, :2]
@@ -146,7 +149,7 @@ def test_crop_puts_each_keypoint_on_its_dot(ds, params):
 @pytest.mark.parametrize("params", TURNS, ids=["plain", "rotated", "flipped"])
 def test_k_crop_and_orientation_reproduce_the_keypoints(ds, model64, params):
     for i in range(len(ds)):
-        item = {k: v.double() for k, v in ds.get(i, params).items()}
+        item = {k: v.double() for k, v in ds.get(i, **params).items()}
         # A pinhole with square pixels, no skew: the 3D rotation is the image's rotation.
         kc = item["K_crop"]
         torch.testing.assert_close(
@@ -163,12 +166,11 @@ def test_k_crop_and_orientation_reproduce_the_keypoints(ds, model64, params):
 
 
 def test_flip_agrees_with_the_flipped_image(ds, model64):
-    base = CropParams(rotation_deg=17.0, scale=0.93, shift=(0.01, 0.02))
-    flipped = CropParams(rotation_deg=17.0, scale=0.93, shift=(0.01, 0.02), flip=True)
+    base = {"rotation_deg": 17.0, "scale": 0.93, "shift": (0.01, 0.02)}
     swap = torch.tensor([0] + [1 + fmt.PART_NAMES.index(mirror_name(n)) for n in fmt.PART_NAMES])
     names = ds.keypoint_names
     for i in (0, 3):
-        a, b = ds.get(i, base), ds.get(i, flipped)
+        a, b = ds.get(i, **base), ds.get(i, **base, flip=True)
         torch.testing.assert_close(b["image"], a["image"].flip(-1), atol=1e-4, rtol=0)
         assert torch.equal(b["mask"], a["mask"].flip(-1))
         assert torch.equal(b["parts"], swap[a["parts"].flip(-1)])
@@ -196,35 +198,6 @@ def test_flip_agrees_with_the_flipped_image(ds, model64):
         torch.testing.assert_close(b["angles"], model64.mirror_pose(a["angles"].double()).float())
         lo, hi = limits[:, 0].float(), limits[:, 1].float()
         assert ((b["angles"] >= lo - 1e-6) & (b["angles"] <= hi + 1e-6)).all()
-
-
-def test_seeded_augmentation_repeats_and_random_does_not(root):
-    ds = SynthDataset(root, crop=32, augment=AugmentConfig(), seed=5)
-    torch.testing.assert_close(ds[2], ds[2])
-    first = ds[2]["affine"]
-    ds.set_epoch(1)
-    assert not torch.equal(ds[2]["affine"], first)
-    free = SynthDataset(root, crop=32, augment=AugmentConfig())
-    assert not torch.equal(free[2]["affine"], free[2]["affine"])
-
-
-def test_kornia_colour_jitter_changes_the_image_only(ds):
-    """Identity jitter is exact; each kornia adjustment moves the image the way it says; the
-    labels of a jittered item equal those of the plain one."""
-    from synth.data import CropParams, color_jitter
-
-    img = ds.get(0, CropParams())["image"]
-    assert torch.equal(color_jitter(img, (0.0, 1.0, 1.0, 0.0)), img)
-    assert color_jitter(img, (0.1, 1.0, 1.0, 0.0)).mean() > img.mean() + 0.05
-    assert color_jitter(img, (0.0, 0.5, 1.0, 0.0)).std() < img.std()
-    grey = color_jitter(img, (0.0, 1.0, 0.0, 0.0))
-    assert (grey.max(0).values - grey.min(0).values).abs().max() < 1e-5  # no saturation: grey
-    assert not torch.allclose(color_jitter(img, (0.0, 1.0, 1.0, 0.5)), img, atol=1e-3)
-    plain, jit = ds.get(0, CropParams()), ds.get(0, CropParams(jitter=(0.1, 1.2, 0.8, 0.1)))
-    assert not torch.equal(plain["image"], jit["image"])
-    for k in plain:
-        if k != "image":
-            assert torch.equal(plain[k], jit[k]), k
 
 
 def one_line_error(call, match: str) -> str:

@@ -10,9 +10,10 @@ import pytest
 import torch
 from fakes import make_dataset, write_fake_sequences
 
-from synth import format as fmt
 from synth.cli import main
-from synth.data import DatasetIndex
+from synth.dataset import format as fmt
+from synth.dataset.format import CONTACT_REGIONS
+from synth.dataset.index import DatasetIndex
 from synth.export import (
     COCO_FILE,
     COCO_KEYPOINTS,
@@ -22,7 +23,6 @@ from synth.export import (
     export,
     rle_encode,
 )
-from synth.sequence import CONTACT_REGIONS
 
 torch.set_num_threads(1)
 
@@ -161,7 +161,7 @@ def test_export_refuses_to_overwrite_and_bad_input_is_one_line(root, tmp_path, c
 def test_bad_labels_in_a_late_sample_leave_no_output(tmp_path, model):
     from fakes import make_sample
 
-    from synth.shards import ShardWriter
+    from synth.dataset.shards import ShardWriter
 
     def sample(i, rng):
         fields = make_sample(i, rng, model, (256, 240))
@@ -274,7 +274,7 @@ def test_sequences_export_refuses_to_overwrite_and_bad_input_leaves_no_output(vi
 
 
 def test_sequences_export_of_bad_labels_in_the_last_frame_leaves_no_output(tmp_path, model):
-    from synth.shards import read_shard, write_shard
+    from synth.dataset.shards import read_shard, write_shard
 
     root = write_fake_sequences(tmp_path / "v", sequences=2, frames=3, model=model)
     shard = root / "shard-000001.tar"

@@ -168,9 +168,9 @@ def _normals(body) -> np.ndarray:
 def test_generate_with_clothes_validates_and_keeps_the_bodys_labels(tiny, tmp_path):
     """The tiny run again with garments (its subjects reused): 0 validation failures, each
     person's subject and BLSM pose the same as without clothes, more mask pixels."""
-    from synth.format import decode_sample
+    from synth.dataset.format import decode_sample
+    from synth.dataset.shards import read_shard
     from synth.generate import generate
-    from synth.shards import read_shard
     from synth.validate import validate
 
     out = tmp_path / "clothed"

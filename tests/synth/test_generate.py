@@ -19,10 +19,10 @@ from tiny_run import TINY, TINY_YAML
 from tiny_run import copy_subjects as _copy_subjects
 from tiny_run import shard_digests as _shard_digests
 
-from synth import format as fmt
 from synth.config import BackgroundConfig, HairConfig, OutputConfig
+from synth.dataset import format as fmt
+from synth.dataset.shards import read_shard, write_shard
 from synth.generate import generate
-from synth.shards import read_shard, write_shard
 from synth.validate import validate
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -250,7 +250,7 @@ def test_backplates_meet_the_cameras_horizon(tiny, tmp_path):
         aligned += 1
         cam = doc["json"]["camera"]
         K, R = np.asarray(cam["K"]), np.asarray(cam["R"])
-        # K, R and the row are stored rounded to 1e-6 (synth.format.json_round): the row recomputed
+        # K, R and the row are stored rounded to 1e-6 (synth.dataset.format.json_round): the row recomputed
         # from them agrees to the rounding's first-order bound, v = cy - fy R21 / R11, not better
         ratio = R[2, 1] / R[1, 1]
         bound = 5e-7 * (2 + abs(ratio) + abs(K[1, 1]) * (1 + abs(ratio)) / abs(R[1, 1]))

@@ -78,9 +78,9 @@ def test_bad_occluders_are_refused():
 def test_generate_with_occluders_validates_and_only_hides_people(tiny, tmp_path):
     """The tiny run again with occluders in every sample (its subjects reused): 0 validation
     failures; the people, camera and keypoints are the same, their masks only lose pixels."""
-    from synth.format import decode_sample
+    from synth.dataset.format import decode_sample
+    from synth.dataset.shards import read_shard
     from synth.generate import generate
-    from synth.shards import read_shard
     from synth.validate import validate
 
     out = tmp_path / "occluded"

@@ -109,9 +109,9 @@ def test_bad_posture_options_are_refused():
 def test_generate_seated_validates_with_seats(tiny, tmp_path):
     """The tiny run with every person seated and every arm drawn over its range (its subjects
     reused): 0 validation failures, a seat per seated person that got one, seats only hide."""
-    from synth.format import decode_sample
+    from synth.dataset.format import decode_sample
+    from synth.dataset.shards import read_shard
     from synth.generate import generate
-    from synth.shards import read_shard
     from synth.validate import validate
 
     out = tmp_path / "seated"

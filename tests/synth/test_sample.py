@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from tiny_run import TINY, drawing_maker, drawn
 
-from synth import format as fmt
 from synth.config import GeneratorConfig, PeopleConfig, RenderConfig
+from synth.dataset import format as fmt
+from synth.dataset.shards import sample_rng
 from synth.people import place_people
 from synth.sample import Person, SampleMaker, pose_person, subdivide
-from synth.shards import sample_rng
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -92,7 +92,7 @@ def test_a_warm_worker_compiles_no_kernel_for_new_samples(tiny):
     import drjit as dr
 
     from blsm.mitsuba_util import resolve_variant
-    from synth.shards import sample_rng
+    from synth.dataset.shards import sample_rng
 
     cfg = dataclasses.replace(TINY, camera=dataclasses.replace(TINY.camera, width=128, height=128))
     assert cfg.ground.shadows and cfg.hair.enabled
@@ -126,7 +126,7 @@ def test_rendering_only_the_peoples_window_keeps_the_labels_and_the_image(tiny):
     the image agrees up to Monte Carlo noise (another random stream for the people; the shadow
     catcher skips the pixels a person covers fully, which the noise moves by a few)."""
     from blsm.mitsuba_util import resolve_variant
-    from synth.shards import sample_rng
+    from synth.dataset.shards import sample_rng
 
     cfg = dataclasses.replace(TINY, render=RenderConfig(spp=36))
     made = {}

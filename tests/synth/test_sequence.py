@@ -19,7 +19,6 @@ from tiny_run import drawing_maker, drawn
 
 import blsm
 from blsm.mocap.library import MotionClip, save_clip
-from synth import format as fmt
 from synth.camera import CameraConfig
 from synth.camera_paths import PATHS, Track, sample_path
 from synth.config import (
@@ -33,6 +32,8 @@ from synth.config import (
     SubjectsConfig,
     load_config,
 )
+from synth.dataset import format as fmt
+from synth.dataset.shards import read_shard
 from synth.generate import generate
 from synth.sequence import (
     CONTACT_REGIONS,
@@ -44,7 +45,6 @@ from synth.sequence import (
     place_tracks,
     toe_base,
 )
-from synth.shards import read_shard
 from synth.validate import validate
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -96,7 +96,7 @@ def clips(library, tmp_path_factory) -> Path:
 
 
 def _docs(dataset: Path) -> list[dict]:
-    from synth.data import DatasetIndex
+    from synth.dataset.index import DatasetIndex
 
     index = DatasetIndex(dataset)
     try:
@@ -476,8 +476,8 @@ def test_a_person_wholly_behind_the_camera_has_no_box_and_loads():
     ``box_full`` null, nothing in frame), and the clip loader fills the crop from the other frames."""
     from blsm.camera import look_at_camera
     from synth import labels as lab
+    from synth.dataset.sequences import fill_missing_boxes
     from synth.render import Frame
-    from synth.sequence_data import fill_missing_boxes
 
     model = blsm.load()
     out = model()

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from synth.shards import (
+from synth.dataset.shards import (
     MANIFEST,
     ShardWriter,
     SkipSample,

@@ -11,10 +11,10 @@ import pytest
 from tiny_run import TINY
 from tiny_run import copy_subjects as _copy_subjects
 
-from synth import format as fmt
 from synth.config import GeneratorConfig, LabelsConfig
+from synth.dataset import format as fmt
+from synth.dataset.shards import read_shard, write_shard
 from synth.generate import generate
-from synth.shards import read_shard, write_shard
 from synth.validate import validate
 
 
@@ -23,7 +23,7 @@ def permuted(tmp_path_factory):
     """The packaged model reparameterised to its own template with the vertices shuffled: W' is a
     permutation, so the second topology's vertices are the original body's, reordered."""
     from blsm import io
-    from blsm.learn.reparam_model import reparameterise
+    from blsm.learn.reparam.model import reparameterise
     from blsm.model import DEFAULT_MODEL
 
     data = io.read_model(DEFAULT_MODEL)

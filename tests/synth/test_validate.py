@@ -17,8 +17,8 @@ import pytest
 import torch
 
 from blsm.camera import Camera, look_at_camera
-from synth import format as fmt
 from synth.camera import CameraConfig, sample_camera
+from synth.dataset import format as fmt
 from synth.labels import assign_hits
 from synth.validate import check_correspondences
 

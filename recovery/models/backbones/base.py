@@ -10,6 +10,11 @@ import abc
 import torch
 from torch import nn
 
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+"""The RGB statistics of ImageNet for pixels in [0, 1], the input normalisation of ImageNet-trained
+backbones (torchvision's ResNets; EfficientNet-Lite and MoveNet have their own)."""
+
 
 class Backbone(nn.Module, abc.ABC):
     """Image encoder: normalised images (B, 3, H, W) -> pooled features (B, C).

@@ -13,8 +13,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from recovery.models.backbones.base import Backbone
-from synth.data import IMAGENET_MEAN, IMAGENET_STD
+from recovery.models.backbones.base import IMAGENET_MEAN, IMAGENET_STD, Backbone
 
 # torchvision's ImageNet statistics (synth's, pixel values in [0, 1]) are what ImageNet ResNet weights expect.
 

@@ -1,7 +1,7 @@
 """The sample format of a generated dataset: the fields of one image and how they are encoded.
 
 A dataset folder (``synth generate ... --out DIR``) holds ``manifest.json``, the shards
-``shard-000000.tar`` ... (WebDataset layout, see :mod:`synth.shards`) and ``subjects/``, one
+``shard-000000.tar`` ... (WebDataset layout, see :mod:`synth.dataset.shards`) and ``subjects/``, one
 ``<subject>.npz`` per person used (:mod:`synth.subjects`), so every sample's mesh can be rebuilt.
 
 Every sample (key ``f"{index:09d}"``) has these members, all made by one render of one scene:
@@ -126,6 +126,9 @@ REBUILD_LEVER = 16.0  # metres: a rebuilt vertex's summed sensitivity to the rou
 FIELDS = ("rgb.png", "json", "mask.png", "parts.png", "bones.png", "depth.exr", "corr.npy.gz")
 
 PART_NAMES = ("head", "torso", "left_arm", "right_arm", "left_leg", "right_leg")
+CONTACT_REGIONS = ("heel_l", "heel_r", "toe_l", "toe_r", "hand_l", "hand_r", "knee_l", "knee_r", "pelvis")
+"""The body regions of a sequence sample's ground-contact labels (``contact``, ``contact_velocity``),
+in this order wherever they are arrays (:mod:`synth.sequence` says how each is decided)."""
 PART_PALETTE = np.array(
     [
         [0, 0, 0],  # background

@@ -7,7 +7,7 @@ A clip is ``L = clip_len`` consecutive frames of one sequence; clips start every
 and never cross a sequence (nor a gap, where a frame was skipped).
 
 ``mode="person"``: one clip per ``(sequence, track, start)``, kept when the person is ``in_view``
-in at least ``min_in_view`` of its frames. Each frame is cropped as :class:`synth.data.SynthDataset`
+in at least ``min_in_view`` of its frames. Each frame is cropped as :class:`synth.dataset.images.SynthDataset`
 crops (SPIN's square of side ``box_scale`` times the longer side of the person's visible ``box``,
 ``box_full`` when nothing is visible), with the crop's centre and side smoothed over the clip by a
 centred moving average of ``smooth`` frames, so the crop follows the person without jitter.
@@ -17,7 +17,7 @@ centred moving average of ``smooth`` frames, so the crop follows the person with
 Items (float32 unless stated; ``L`` frames, ``K`` keypoints, ``S = crop``):
 
 ==========================  ================  =====================================================
-``images``                  (L, 3, S, S)      in [0, 1], ImageNet-normalised with ``normalize``
+``images``                  (L, 3, S, S)      in [0, 1]                                            
 ``keypoints_2d``            (L, K, 3)         crop pixels (centres at integer + 0.5) and visibility
                                               (visible in the image and inside the crop)
 ``keypoints_3d_cam``        (L, K, 3)         camera metres (of the camera below, not centred)
@@ -47,7 +47,7 @@ keypoints ``X``, and ``keypoints_3d_cam = R X + t``.
 
 **Flip.** One draw per clip (probability ``flip_prob``, seeded like ``SynthDataset``) mirrors the
 whole clip: every image left-right (``u -> W - u``), the keypoints swapped left/right by name
-(:func:`synth.data.mirror_permutation`), the contact regions likewise, the pose by the model's
+(:func:`synth.dataset.images.mirror_permutation`), the contact regions likewise, the pose by the model's
 ``dof_mirror``. The 3D labels stay a consistent, gravity-aligned world: the world is reflected by
 ``M = I - 2 n n^T`` with ``n`` the horizontal unit part of the first frame's camera x axis (world),
 a reflection in a vertical plane, so Y stays up and the ground stays ``y = 0``, and each frame's
@@ -76,21 +76,12 @@ import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
 from blsm.skeleton import mirror_name
-from synth import format as fmt
-from synth.data import (
-    MEAN_CHW,
-    STD_CHW,
-    DatasetIndex,
-    SeededDataset,
-    blsm_model,
-    check_png_crc,
-    crop_affine,
-    mirror_permutation,
-    resolve_keypoints,
-    warp_to_crop,
-)
-from synth.sequence import CONTACT_REGIONS
-from synth.shards import MANIFEST
+from synth.dataset import format as fmt
+from synth.dataset.crops import crop_affine, warp_to_crop
+from synth.dataset.format import CONTACT_REGIONS
+from synth.dataset.images import SeededDataset, blsm_model, mirror_permutation, resolve_keypoints
+from synth.dataset.index import DatasetIndex, check_png_crc
+from synth.dataset.shards import MANIFEST
 
 CONTACT_MIRROR = tuple(CONTACT_REGIONS.index(mirror_name(r)) for r in CONTACT_REGIONS)
 """``perm`` with ``CONTACT_REGIONS[perm[i]]`` the mirror of region ``i`` (left and right swapped)."""
@@ -153,7 +144,6 @@ class SequenceDataset(SeededDataset):
         box_scale: crop side over the box's longer side (1.2 as in SPIN).
         smooth: frames of the moving average of the crop's centre and side (person mode).
         flip_prob: probability of flipping a clip (one draw per clip).
-        normalize: subtract the ImageNet mean and divide by its standard deviation.
         seed: None: fresh draws every call (torch's RNG, seeded per DataLoader worker); an int:
             clip ``i`` in epoch ``e`` (:meth:`set_epoch`) is a function of ``(seed, e, i)``.
         allow_incomplete: accept a manifest of an unfinished generation run.
@@ -176,7 +166,6 @@ class SequenceDataset(SeededDataset):
         box_scale: float = 1.2,
         smooth: int = 5,
         flip_prob: float = 0.0,
-        normalize: bool = False,
         seed: int | None = None,
         allow_incomplete: bool = False,
     ) -> None:
@@ -191,7 +180,7 @@ class SequenceDataset(SeededDataset):
             raise ValueError(f"min_in_view and flip_prob must be in [0, 1], got {min_in_view}, {flip_prob}")
         self.clip_len, self.stride, self.mode, self.crop = int(clip_len), int(stride), mode, int(crop)
         self.box_scale, self.smooth, self.flip_prob = float(box_scale), int(smooth), float(flip_prob)
-        self.normalize, self.seed, self.epoch = normalize, seed, 0
+        self.seed, self.epoch = seed, 0
         self.index = DatasetIndex(path, allow_incomplete, required=_READ)
         frames = self._frames_per_sequence()
         by_seq: dict[int, dict[int, int]] = {}
@@ -299,8 +288,6 @@ class SequenceDataset(SeededDataset):
                 for x, a in zip(rgbs, amat, strict=True)
             ]
         )
-        if self.normalize:
-            images = (images - MEAN_CHW) / STD_CHW
 
         uv = np.einsum("lij,lpkj->lpki", amat[:, :2, :2], lab["kp2"]) + amat[:, None, None, :2, 2]
         vis = lab["vis"] & (uv >= 0).all(-1) & (uv < self.crop).all(-1)
