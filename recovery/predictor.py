@@ -29,10 +29,10 @@ from recovery.checkpoint import (
 from recovery.config import RecoveryConfig, config_from_json, model_file
 from recovery.models.backbones.movenet import flip_coco
 from recovery.models.hmr import HMROutput, body_outputs, flip_average, predict_body
-from recovery.tasks import TASKS as TRAINED
+from recovery.models.registry import build_network, inference_tasks
 from recovery.utils.geometry import UPRIGHT_FACING_CAMERA, cam_to_translation, project
 
-TASKS = tuple(name for name, spec in TRAINED.items() if spec.inference_model is not None)
+TASKS = inference_tasks()
 """The tasks whose checkpoints predict (``hmr_blsm``, ``mesh``)."""
 
 
@@ -184,7 +184,7 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
         raise ValueError(f"{path}: made for another BLSM model file than {mpath} (SHA-256 differs)")
     body = blsm.load(mpath)
     state = {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"]["model"].items()}
-    model, regressor = TRAINED[cfg.task].inference_model(cfg, body, mpath, log)
+    model, regressor = build_network(cfg, body, mpath, log)
     try:
         model.load_state_dict(state)
     except RuntimeError as exc:

@@ -41,9 +41,9 @@ class TaskSpec:
         best_metric: the validation metric whose minimum writes ``best.pt``.
         describe: ``(cfg, train, val, env, epoch_size) -> str``: the run's first log line.
         distributed: whether it trains under ``torchrun`` (several processes).
-        inference_model: ``(cfg, body, model_path, log) -> (network, keypoint regressor or None)``:
-            the network a checkpoint of this task holds, for :func:`recovery.predictor.load_predictor`
-            (None: no inference, e.g. the autoencoder).
+
+    The network a checkpoint of the task holds for inference is registered apart, in
+    :data:`recovery.models.registry.NETWORKS`, so that inference imports no training module.
     """
 
     name: str
@@ -52,7 +52,6 @@ class TaskSpec:
     best_metric: str
     describe: Callable[..., str]
     distributed: bool = False
-    inference_model: Callable[..., tuple[nn.Module, torch.Tensor | None]] | None = None
 
 
 def set_threads(cfg: RecoveryConfig) -> None:

@@ -18,7 +18,6 @@ ranks; the logged values are the global ones, equal on every rank.
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -36,7 +35,8 @@ from recovery.eval.joints import PELVIS, indices
 from recovery.models import losses as L
 from recovery.models.discriminator import PoseDiscriminator, normalise_angles
 from recovery.models.heads import ParamLayout, mean_theta
-from recovery.models.hmr import HMRBLSM, body_outputs, predict_body
+from recovery.models.hmr import body_outputs, predict_body
+from recovery.models.registry import build_hmr
 from recovery.tasks.base import (
     TaskSpec,
     checkpoint_meta,
@@ -47,20 +47,6 @@ from recovery.tasks.base import (
     set_threads,
 )
 from recovery.utils.schedule import warmup_cosine
-
-
-def build_model(cfg: RecoveryConfig, body: nn.Module, init: torch.Tensor | None = None,
-                pretrained: bool | None = None) -> HMRBLSM:
-    """The network of ``cfg.model`` for the BLSM ``body``; ``init`` = Theta_0 (zeros when loading a checkpoint)."""
-    m = cfg.model
-    if m.num_shape > body.num_shape_coeffs:
-        raise ValueError(f"model.num_shape {m.num_shape} exceeds the model's {body.num_shape_coeffs} shape coefficients")
-    layout = ParamLayout(body.num_dofs, body.num_bone_coeffs, m.num_shape)
-    if init is None:
-        init = torch.zeros(layout.size)
-    return HMRBLSM(m.backbone, layout, body.num_shape_coeffs, init, pretrained=m.pretrained if pretrained is None else pretrained,
-                   hidden=m.hidden, dropout=m.dropout, iterations=m.ief_iterations, head_input=m.head_input,
-                   image_dropout=m.image_dropout, keypoint_width=m.keypoint_width, train_blocks=m.train_blocks)
 
 
 class HMRTask:
@@ -84,7 +70,7 @@ class HMRTask:
         if list(keypoint_names) != list(body.keypoint_names):
             raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
         self.crop = cfg.data.crop
-        self.model = build_model(cfg, body, init)
+        self.model = build_hmr(cfg, body, init)
         if cfg.train.init:
             self._load_init(cfg.train.init)
         self.model.backbone.use_channels_last(cfg.train.channels_last)
@@ -310,11 +296,5 @@ def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[HMRTask, CropCache, Cr
     return task, train, val
 
 
-def inference_model(cfg: RecoveryConfig, body: nn.Module, model_path: Path,
-                    log: Any = print) -> tuple[nn.Module, None]:
-    """The network of a checkpoint's config, without ImageNet weights (its own are loaded next)."""
-    return build_model(cfg, body, pretrained=False), None
-
-
 SPEC = TaskSpec(name=HMRTask.name, setup=setup, batches=image_batches, best_metric="pa_mpjpe_mm",
-                describe=describe_images, distributed=True, inference_model=inference_model)
+                describe=describe_images, distributed=True)

@@ -17,7 +17,6 @@ BEGAN convergence measure ``M = L_AE(real) + |gamma L_AE(real) - L_AE(fake)|``, 
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -32,7 +31,6 @@ from recovery.datasets.meshes import body_frame_vertices
 from recovery.eval import metrics as M
 from recovery.eval.joints import PELVIS, indices
 from recovery.eval.metrics import vertex_error_mm
-from recovery.mesh.operators import mesh_operators
 from recovery.models import losses as L
 from recovery.models.mesh_ae import MeshAutoencoder
 from recovery.models.mesh_net import MeshOutput, MeshRegressor, weak_perspective
@@ -267,17 +265,5 @@ def setup(cfg: RecoveryConfig, log: Any = print) -> tuple[MeshTask, CropCache, C
     return task, train, val
 
 
-def inference_model(cfg: RecoveryConfig, body: nn.Module, model_path: Path,
-                    log: Any = print) -> tuple[nn.Module, torch.Tensor]:
-    """The network of a checkpoint's config (its weights, normalisation and camera bias are loaded
-    next) and its keypoint regressor (K, V)."""
-    ops = mesh_operators(model_path, cfg.mesh.cache, cfg.mesh.ops_settings(), log=log)
-    nv = body.num_vertices
-    m = cfg.mesh
-    model = MeshRegressor(cfg.model.backbone, ops, torch.zeros(nv, 3), torch.ones(nv, 3), torch.zeros(3),
-                          pretrained=False, channels=tuple(m.channels), latent=m.latent, hidden=m.hidden)
-    return model, torch.as_tensor(ops.regressor)
-
-
 SPEC = TaskSpec(name=MeshTask.name, setup=setup, batches=image_batches, best_metric="pa_mpjpe_mm",
-                describe=describe_images, distributed=False, inference_model=inference_model)
+                describe=describe_images, distributed=False)

@@ -249,7 +249,7 @@ def test_rank_0_writes_one_run_folder(ddp_runs):
     """One log, one validation, ``last.pt`` and ``best.pt`` from rank 0; the checkpoint records the
     global position and every rank's RNG, and loads into the single-process network."""
     import blsm
-    from recovery.tasks.hmr_task import build_model
+    from recovery.models.registry import build_hmr
 
     two = ddp_runs["two"]
     assert sorted(p.name for p in two.iterdir()) == RUN_FILES
@@ -261,7 +261,7 @@ def test_rank_0_writes_one_run_folder(ddp_runs):
     assert ck["step"] == STEPS and ck["consumed"] == STEPS * BATCH and ck["world_size"] == 2
     assert len(ck["rank_rng"]) == 2 and torch.equal(ck["rank_rng"][0][0], ck["torch_rng"])
     assert not torch.equal(ck["rank_rng"][0][0], ck["rank_rng"][1][0])  # each rank its own dropout masks
-    model = build_model(load_config(two.parent / "config.yaml"), blsm.load(), pretrained=False)
+    model = build_hmr(load_config(two.parent / "config.yaml"), blsm.load(), pretrained=False)
     model.load_state_dict(ck["modules"]["model"])  # strict: the SyncBatchNorm layers saved as BatchNorm
     assert ck["modules"]["model"].keys() == ref["modules"]["model"].keys()
 

@@ -49,13 +49,13 @@ def test_zero_ief_iterations_give_the_mean_parameters(model, gen):
 
 def test_zero_ief_iterations_from_the_config(model, gen):
     from recovery.config import ModelConfig, RecoveryConfig
-    from recovery.tasks.hmr_task import build_model
+    from recovery.models.registry import build_hmr
 
     cfg = RecoveryConfig(
         model=ModelConfig(backbone="resnet18", pretrained=False, ief_iterations=0, hidden=16)
     )
     init = torch.randn(ParamLayout(model.num_dofs, model.num_bone_coeffs, 10).size, generator=gen)
-    net = build_model(cfg, model, init).train()  # dropout and batch statistics change nothing either
+    net = build_hmr(cfg, model, init).train()  # dropout and batch statistics change nothing either
     with torch.no_grad():
         out = net(torch.rand(2, 3, 32, 32, generator=gen))
     assert torch.equal(out.thetas, init.expand(1, 2, -1))

@@ -210,9 +210,9 @@ def test_keypoints_follow_a_shift_of_the_image() -> None:
 
 def _hmr(model, **kw):
     from recovery.config import ModelConfig, RecoveryConfig
-    from recovery.tasks.hmr_task import build_model
+    from recovery.models.registry import build_hmr
 
-    return build_model(RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", **kw)), model)
+    return build_hmr(RecoveryConfig(model=ModelConfig(backbone="movenet_lightning", **kw)), model)
 
 
 def test_keypoint_head_gets_movenet_keypoints_and_a_fixed_backbone_gets_no_gradient(model) -> None:
@@ -444,7 +444,7 @@ def test_which_blocks_train_does_not_make_another_network() -> None:
 
 
 def test_movenet_rows_share_one_budget_and_data() -> None:
-    """Every trained row of benchmarks/movenet_rows.py has a config that parses, 800 steps of 32 on one
+    """Every trained row of experiments/transfer/movenet_rows.py has a config that parses, 800 steps of 32 on one
     data set and one validation set (docs/transfer.md, "A backbone that reads people in photographs");
     the one continuation (kp_frozen_long) starts from kp_frozen's network."""
     import importlib.util
@@ -453,7 +453,7 @@ def test_movenet_rows_share_one_budget_and_data() -> None:
     from recovery.config import load_config
 
     root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("movenet_rows", root / "benchmarks/movenet_rows.py")
+    spec = importlib.util.spec_from_file_location("movenet_rows", root / "experiments/transfer/movenet_rows.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     trained = [n for n, (_, src) in mod.ROWS.items() if src == "config"]
