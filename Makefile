@@ -25,7 +25,7 @@ test: $(STAMP)
 
 # Long: the generator part makes about 2000 images (about 40 minutes on 2 cores); the fresh-sample
 # runs (bench_generate: cold and warm kernel caches, 2 and 1 workers, the bare render beside) about
-# 6 minutes; with a GPU, the same on cuda_ad_rgb with 1-16 workers (benchmarks/figures/gpu_generate.sh does it on
+# 6 minutes; with a GPU, the same on cuda_ad_rgb with 1-16 workers (benchmarks/gpu_generate.sh does it on
 # a lent machine without Mitsuba); the recovery part needs the validation set (made if missing, about 1 minute).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_forward.py --out docs/benchmarks.md
@@ -53,12 +53,12 @@ bench: $(STAMP)
 # Behaviour kept to the byte across a refactor (docs/architecture.md, "Checked by"): nine small datasets
 # of seven configs hashed file by file into out/identity/identity.json (about 5 minutes on 2 cores; add
 # --ray for a tenth on the Ray engine, which needs the ray extra);
-# compare two such files with `python benchmarks/identity_check.py --compare A.json B.json`.
+# compare two such files with `python scripts/identity_check.py --compare A.json B.json`.
 identity: $(STAMP)
 	test -f out/motions/summary.csv || $(MAKE) motions
 	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
 	test -f $(HOME)/.cache/blsm-synth/backplates/plates.json || $(BIN)/python scripts/setup_backplates.py
-	$(BIN)/python benchmarks/identity_check.py --out out/identity
+	$(BIN)/python scripts/identity_check.py --out out/identity
 
 # The packaged model, learnt from scans (thesis Sec. 5.4): 1000 Anny stand-in subjects made with
 # the packaged rig, registration, learning, SMPL-reimpl and the held-out evaluation into docs/
@@ -90,7 +90,7 @@ motions: $(STAMP)
 video: $(STAMP)
 	test -f out/motions/summary.csv || $(MAKE) motions
 	$(MAKE) recovery-data-motions
-	$(BIN)/python benchmarks/video_check.py --out out/video_check --doc docs/figures/video_check.json
+	$(BIN)/python experiments/video/video_check.py --out out/video_check --doc docs/figures/video_check.json
 	$(BIN)/synth generate configs/synth/video_test.yaml --out out/video_test --workers 2 --resume
 	$(BIN)/synth validate out/video_test
 	$(BIN)/recovery evaluate default out/video_test --out out/video_eval
@@ -152,7 +152,7 @@ recovery-model-lite0: $(STAMP)
 	# the transfer fine-tune of that network, averaged with it (docs/recovery.md, "The packaged model")
 	test -f out/transfer/data/garments_subjects/manifest.json || $(BIN)/synth generate configs/synth/transfer/garments_subjects.yaml --out out/transfer/data/garments_subjects --workers 2 --resume
 	$(BIN)/recovery train configs/recovery/transfer/garments_effects_subjects.yaml --out out/transfer/runs/garments_effects_subjects --resume
-	$(BIN)/python benchmarks/transfer_soup.py --only wise_garments_effects_subjects --no-score
+	$(BIN)/python experiments/transfer/transfer_soup.py --only wise_garments_effects_subjects --no-score
 	$(BIN)/recovery evaluate out/transfer/soups/wise_garments_effects_subjects.pt out/data/test --out out/eval/hmr_blsm_lite0_default
 	$(BIN)/recovery export out/transfer/soups/wise_garments_effects_subjects.pt --out out/weights/hmr_blsm_lite0_default.pt --report out/eval/hmr_blsm_lite0_default/metrics.json
 
@@ -165,25 +165,25 @@ movenet-data: $(STAMP)
 	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/movenet/data/train_hdri --workers 2 --resume --num 3000 --set subjects.count=48
 	$(BIN)/synth generate configs/synth/transfer/garments_postures.yaml --out out/movenet/data/garments_postures --workers 2 --resume --num 800 --set subjects.count=48
 
-# The MoveNet rows of docs/transfer.md (configs/recovery/movenet; benchmarks/movenet_rows.py): each row trained
+# The MoveNet rows of docs/transfer.md (configs/recovery/movenet; experiments/transfer/movenet_rows.py): each row trained
 # at one budget (about 20 minutes on 2 cores), evaluated on the test set, scored by the transfer check and its
 # sub-pixel jitter (about 8 minutes), results in docs/figures/transfer_movenet.json; resumable.
 movenet-ablation: movenet-data transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
-	$(BIN)/python benchmarks/movenet_rows.py
-	$(BIN)/python benchmarks/movenet_rows.py --rows kp_frozen --fit 30
+	$(BIN)/python experiments/transfer/movenet_rows.py
+	$(BIN)/python experiments/transfer/movenet_rows.py --rows kp_frozen --fit 30
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
 # Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on
 # 2 cores); an interrupted run continues where it stopped.
 recovery-ablation: $(STAMP)
-	$(BIN)/recovery ablation configs/recovery/ablation --test out/data/test --out out/ablation
+	$(BIN)/python experiments/recovery_ablation/ablation.py configs/recovery/ablation --test out/data/test --out out/ablation
 
 # The equal-budget comparisons of docs/recovery.md (docs/recovery_comparison.md): ImageNet Lite0 against
 # ResNet-18 from scratch, and Lite0 without the pose discriminator, each trained (about 10-12 minutes on
 # 2 cores; a finished run is reused) and evaluated on 600 people of the test set. Needs recovery-data.
 recovery-compare: $(STAMP)
-	$(BIN)/python benchmarks/compare_recovery.py
+	$(BIN)/python experiments/recovery_ablation/compare_recovery.py
 
 # The real-photo transfer check's set-up (docs/transfer.md): MediaPipe Pose in .venv-reference, the
 # development set of real photographs (out/transfer_dev), the backplate bank
@@ -201,8 +201,8 @@ transfer-setup: $(STAMP)
 # difference against the base row (docs/figures/transfer_paired.json).
 transfer-ablation: transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
-	$(BIN)/python benchmarks/transfer_ablation.py
-	$(BIN)/python benchmarks/transfer_paired.py
+	$(BIN)/python experiments/transfer/transfer_ablation.py
+	$(BIN)/python experiments/transfer/transfer_paired.py
 
 clean-venv:
 	rm -rf $(VENV)

@@ -128,7 +128,7 @@ def _bare_worker(cfg_dict: dict, dataset: str, first: int, count: int, threads: 
     import synth.render as render
     from synth.config import GeneratorConfig, from_dict
     from synth.sample import SampleMaker
-    from synth.shards import sample_rng
+    from synth.dataset.shards import sample_rng
 
     torch.set_num_threads(1)
     dr.set_thread_count(threads)
@@ -238,7 +238,7 @@ def main() -> int:
         gpu = "cuda" in variant
         write_section(args.out, f"generate-{'gpu' if gpu else 'cpu'}", f"Generator on fresh samples ({'GPU' if gpu else 'CPU'})",
                       "benchmarks/bench_generate.py", _report(cfg, variant, records, args, cpus),
-                      command=None if not gpu else "`bash benchmarks/figures/gpu_generate.sh` on a lent GPU machine (runs "
+                      command=None if not gpu else "`bash benchmarks/gpu_generate.sh` on a lent GPU machine (runs "
                       f"`python benchmarks/bench_generate.py --variant {variant} --workers {' '.join(map(str, args.workers))}"
                       f"{' --no-cold' if args.no_cold else ''} ...`)")
     if args.work is None:

@@ -113,9 +113,9 @@ def ages_section(n: int, png: Path, link: str) -> str:
 def time_scenes(maker, seed: int, scenes: int) -> tuple[list[dict], float]:
     """Samples 1..``scenes`` of ``maker`` (a ``synth.sample.SampleMaker``) and the seconds per
     sample spent making them, after a warm-up sample (kernels compile once) and rigging every subject
-    (per-subject work, the render mesh and hair, is made once). benchmarks/figures/time_images.py times an
+    (per-subject work, the render mesh and hair, is made once). benchmarks/time_images.py times an
     older checkout with it too."""
-    from synth.shards import sample_rng
+    from synth.dataset.shards import sample_rng
 
     maker.make(0, sample_rng(seed, 0))
     for si in range(len(maker.subjects)):
@@ -130,7 +130,7 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
 
     import blsm
     from blsm.mitsuba_util import resolve_variant
-    from synth import format as fmt
+    from synth.dataset import format as fmt
     from synth.config import load_config
     from synth.denoise import psnr
     from synth.generate import prepare_subjects

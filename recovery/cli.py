@@ -74,11 +74,6 @@ def _parser() -> argparse.ArgumentParser:
     x.add_argument("--report", help="a metrics.json to embed as the model's summary")
     x.add_argument("--fit", type=int, default=0, help="the test-time fit's iterations its users get by default "
                    "(HMR-BLSM on MoveNet keypoints; 0: none)")
-    a = sub.add_parser("ablation", help="thesis Table 4.3 on our data: autoencoder vs PCA, Configs A-F (resumable)")
-    a.add_argument("configs", help="folder with autoencoder.yaml and A.yaml ... F.yaml")
-    a.add_argument("--test", required=True, help="the test dataset folder")
-    a.add_argument("--out", required=True, help="run folder (one sub-folder per config)")
-    a.add_argument("--docs", default="docs", help="where recovery_ablation.md goes (its JSON and figures under figures/)")
     r = sub.add_parser("transfer", help="real-photo transfer check against a reference 2D pose estimator (docs/transfer.md)")
     r.add_argument("checkpoint", help="a checkpoint, 'default', or movenet_lightning / movenet_thunder (MoveNet's "
                    "own 2D keypoints: the ceiling row)")
@@ -167,16 +162,6 @@ def _run(args: argparse.Namespace) -> int:
         summary = json.loads(Path(args.report).read_text()) if args.report else None
         path = export(args.checkpoint, args.out, half=not args.full, summary=summary, fit=args.fit)
         print(f"wrote {path} ({path.stat().st_size / 2**20:.1f} MiB)")
-        return 0
-    if args.cmd == "ablation":
-        from recovery.ablation import run_ablation
-
-        try:
-            run_ablation(args.configs, args.test, args.out, args.docs)
-        except KeyboardInterrupt:
-            print("recovery: ablation interrupted; run the same command to continue", file=sys.stderr)
-            return 130
-        print(f"wrote {args.docs}/recovery_ablation.md and {args.docs}/figures/recovery_ablation.json")
         return 0
     if args.cmd == "transfer":
         from recovery.eval.transfer import format_report, run_transfer

@@ -19,6 +19,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = ("blsm", "synth", "recovery")
 """Top-level packages, lowest first: a package may import only itself and those before it."""
+SCRIPT_FOLDERS = ("experiments", "benchmarks", "scripts")
+"""Folders of scripts beside the packages: they import the packages, never the other way."""
 
 
 @dataclass
@@ -156,6 +158,12 @@ def layer_violations(graph: ImportGraph, layers: tuple[str, ...] = LAYERS) -> li
     return bad
 
 
+def script_imports(graph: ImportGraph, folders: tuple[str, ...] = SCRIPT_FOLDERS) -> list[str]:
+    """``"importer -> imported"`` for every import of a script folder's module by a package."""
+    return [f"{importer} -> {target}" for importer, targets in sorted(graph.external.items())
+            for target in sorted(targets) if target.split(".")[0] in folders]
+
+
 @pytest.fixture(scope="module")
 def graph() -> ImportGraph:
     return build_graph(ROOT)
@@ -181,6 +189,11 @@ def test_no_private_names_across_packages(graph: ImportGraph) -> None:
     assert not graph.private, f"private names used across packages (module, name, line): {graph.private}"
 
 
+def test_packages_do_not_import_scripts(graph: ImportGraph) -> None:
+    bad = script_imports(graph)
+    assert not bad, f"package modules importing {', '.join(SCRIPT_FOLDERS)} (experiments and tools stay outside): {bad}"
+
+
 def test_checks_catch_violations(tmp_path: Path) -> None:
     files = {
         "blsm/__init__.py": "",
@@ -194,6 +207,7 @@ def test_checks_catch_violations(tmp_path: Path) -> None:
         "recovery/__init__.py": "",
         "recovery/w.py": "",
         "recovery/z.py": "from synth.x import ok\nfrom ..synth import y\n",
+        "recovery/v.py": "def f():\n    from experiments.transfer import rows\n    import benchmarks.report\n",
     }
     for rel, text in files.items():
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -203,6 +217,7 @@ def test_checks_catch_violations(tmp_path: Path) -> None:
     assert g.edges["synth.x"] == {"blsm.a", "synth.y"}
     assert g.edges["recovery.z"] == {"synth.x", "synth.y"}
     assert layer_violations(g) == ["blsm.c -> synth.x", "synth.y -> recovery.w"]
+    assert script_imports(g) == ["recovery.v -> benchmarks.report", "recovery.v -> experiments.transfer"]
     assert sorted((m, n) for m, n, _ in g.private) == [
         ("synth.x", "blsm.a._hidden"),
         ("synth.y", "blsm.a._other"),

@@ -1,5 +1,6 @@
-"""recovery ablation: the whole command at toy scale (two steps per run) on the fake dataset —
-every stage runs, the JSON has the promised keys, and a second call reuses what is done."""
+"""experiments/recovery_ablation/ablation.py (thesis Table 4.3): the whole run at toy scale (two steps
+per run) on the fake dataset — every stage runs, the JSON has the promised keys, and a second call
+reuses what is done."""
 
 from __future__ import annotations
 
@@ -26,8 +27,8 @@ def _library(folder, names, model):
 
 
 def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model, monkeypatch):
+    from experiments.recovery_ablation.ablation import CONFIGS, run_ablation
     from recovery import trainer
-    from recovery.ablation import CONFIGS, run_ablation
 
     monkeypatch.setattr(trainer, "plot_curves", lambda *a, **k: None)
     _library(tmp_path / "test_lib", ["007_12", "005_20"], model)
@@ -66,7 +67,7 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
         assert (tmp_path / "docs" / "figures" / png).stat().st_size > 1000
     assert "does not hold" in (tmp_path / "docs" / "recovery_ablation.md").read_text() or "holds" in (tmp_path / "docs" / "recovery_ablation.md").read_text()
     # a second call trains and evaluates nothing again, and takes in a GPU run's summary and the notes
-    gpu = {"command": "python benchmarks/figures/gpu_autoencoder.py", "config": "x.yaml", "batch_size": 64, "planned_steps": 10,
+    gpu = {"command": "python experiments/recovery_ablation/gpu_autoencoder.py", "config": "x.yaml", "batch_size": 64, "planned_steps": 10,
            "device": "GPU", "steps_reached": 10, "train_seconds": 1.0, "meshes_per_second": 640.0,
            "val_vertex_mm": {"10": 9.5}, "val_split": "val", "status": "done"}
     (tmp_path / "docs" / "figures" / "recovery_ablation_gpu.json").write_text(json.dumps({"runs": [{**gpu, "latent": 8}]}))
@@ -80,9 +81,10 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
     assert "## On a GPU" in report and "9.5 mm at step 10" in report and "measured notes" in report
 
 
-def test_ablation_needs_every_config(tmp_path, fake_root):
-    from recovery.cli import main
+def test_ablation_needs_every_config(tmp_path, fake_root, capsys):
+    from experiments.recovery_ablation.ablation import main
 
     (tmp_path / "cfg").mkdir()
-    assert main(["ablation", str(tmp_path / "cfg"), "--test", str(fake_root), "--out", str(tmp_path / "o")]) == 2
+    assert main([str(tmp_path / "cfg"), "--test", str(fake_root), "--out", str(tmp_path / "o")]) == 2
+    assert "autoencoder.yaml: missing" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
