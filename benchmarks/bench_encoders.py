@@ -1,8 +1,8 @@
-"""The generator's per-sample encoders (:mod:`synth.format`) against the alternatives installed in the
+"""The generator's per-sample encoders (:mod:`synth.dataset.format`) against the alternatives installed in the
 environment: time per image, size and whether each round-trips exactly (issue 34).
 
 The inputs are real samples: the first ``--samples`` of the first shard of ``--dataset`` (a folder
-made by ``synth generate``), decoded with :func:`synth.format.decode_sample`, so the images,
+made by ``synth generate``), decoded with :func:`synth.dataset.format.decode_sample`, so the images,
 labels, depth and correspondences have the statistics the generator's encoders see.
 
 Per field, every encoder is first run once on every input: its bytes are decoded and compared with
@@ -51,8 +51,8 @@ import PIL
 from PIL import Image
 from report import write_section  # benchmarks/report.py (run as a script)
 
-from synth import format as fmt
-from synth.shards import read_shard
+from synth.dataset import format as fmt
+from synth.dataset.shards import read_shard
 
 SIZE_SLACK = 1.10  # the size-bounded pick: at most 10 % larger than the current encoder's bytes
 _SHM = "/dev/shm" if os.access("/dev/shm", os.W_OK) else None

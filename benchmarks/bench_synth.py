@@ -94,7 +94,7 @@ def main() -> int:
     from synth.generate import choose_variant, generate, prepare_subjects
     from synth.render import PeopleRenderer
     from synth.sample import SampleMaker
-    from synth.shards import sample_rng
+    from synth.dataset.shards import sample_rng
 
     base = GeneratorConfig()
     cfg = dataclasses.replace(

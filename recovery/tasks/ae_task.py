@@ -118,4 +118,4 @@ def describe(cfg: RecoveryConfig, train: None, val: None, env: Any, epoch_size: 
 
 
 SPEC = TaskSpec(name=AutoencoderTask.name, setup=setup, batches=batches, best_metric="vertex_mm",
-                describe=describe, distributed=False)
+                describe=describe, distributed=False, network="ae")

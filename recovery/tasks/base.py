@@ -41,6 +41,8 @@ class TaskSpec:
         best_metric: the validation metric whose minimum writes ``best.pt``.
         describe: ``(cfg, train, val, env, epoch_size) -> str``: the run's first log line.
         distributed: whether it trains under ``torchrun`` (several processes).
+        network: the key of :meth:`recovery.trainer.Task.modules` that holds the network (what
+            ``train.init`` loads and inference reads from a checkpoint).
 
     The network a checkpoint of the task holds for inference is registered apart, in
     :data:`recovery.models.registry.NETWORKS`, so that inference imports no training module.
@@ -52,6 +54,7 @@ class TaskSpec:
     best_metric: str
     describe: Callable[..., str]
     distributed: bool = False
+    network: str = "model"
 
 
 def set_threads(cfg: RecoveryConfig) -> None:

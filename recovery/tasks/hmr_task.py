@@ -26,7 +26,6 @@ from torch import nn
 import blsm
 from blsm.joint_limits import angles_from_unconstrained
 from recovery import distributed as D
-from recovery.checkpoint import network_hash, read_checkpoint, resolve
 from recovery.config import RecoveryConfig, model_file
 from recovery.datasets.cache import CropCache
 from recovery.datasets.real_poses import RealPoses, real_poses
@@ -71,8 +70,6 @@ class HMRTask:
             raise ValueError("the datasets' keypoint_names are not the BLSM model's (made with another model?)")
         self.crop = cfg.data.crop
         self.model = build_hmr(cfg, body, init)
-        if cfg.train.init:
-            self._load_init(cfg.train.init)
         self.model.backbone.use_channels_last(cfg.train.channels_last)
         self.net: nn.Module = self.model  # the training forward: the DDP wrapper with several processes
         self.world, self.rank = 1, 0
@@ -98,21 +95,6 @@ class HMRTask:
         self.eval_idx = torch.tensor(indices(body.keypoint_names))
         self.device = torch.device("cpu")
         self.amp = False
-
-    def _load_init(self, checkpoint: str) -> None:
-        """``train.init``: start from the weights of a checkpoint of the same network and model file."""
-        path = resolve(checkpoint)
-        ck = read_checkpoint(path)
-        if ck.get("task") != "hmr_blsm" or network_hash(ck) != self.cfg.model_hash() or "model" not in ck.get("modules", {}):
-            raise ValueError(f"{path}: train.init is not a checkpoint of this network (model settings differ)")
-        ours = self.meta.get("blsm_model_sha256")
-        if ours is not None and ck.get("blsm_model_sha256") != ours:
-            raise ValueError(f"{path}: train.init was made with another BLSM model file")
-        state = {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"]["model"].items()}
-        try:
-            self.model.load_state_dict(state)
-        except RuntimeError as exc:
-            raise ValueError(f"{path}: train.init's weights do not fit this network ({str(exc).splitlines()[0][:160]})") from None
 
     def _freeze_bn(self) -> None:
         """``train.frozen_bn``: the backbone's BatchNorm layers in eval mode, their affine fixed."""

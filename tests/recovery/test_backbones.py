@@ -290,3 +290,35 @@ def test_channels_last_gives_the_same_features_gradients_and_state(name):
     torch.testing.assert_close(fresh(x), a, rtol=1e-4, atol=1e-5)
     net.use_channels_last(False)
     assert conv.is_contiguous() and not net.channels_last
+
+
+def test_a_new_backbone_is_one_file_and_one_registration_line(monkeypatch, model):
+    """What adding a backbone costs (issue 54): its module (here the class below) and one line,
+    ``BACKBONES[name] = factory``; then a config names it, ``recovery train`` accepts it and HMR-BLSM
+    runs on it, with nothing else edited."""
+    from torch import nn
+
+    from recovery.config import ModelConfig, RecoveryConfig
+    from recovery.models.backbones import BACKBONES
+    from recovery.models.backbones.base import Backbone
+    from recovery.models.registry import build_hmr
+    from recovery.train import preflight
+
+    class TinyNet(Backbone):  # the new file's content
+        def __init__(self) -> None:
+            super().__init__("tinynet", 8, (0.5, 0.5, 0.5), (0.25, 0.25, 0.25), 32, "fc")
+            self.conv = nn.Conv2d(3, 8, 3, stride=4)
+
+        def forward_features(self, images: torch.Tensor) -> torch.Tensor:
+            return self.conv(images)
+
+    cfg = RecoveryConfig(model=ModelConfig(backbone="tinynet", pretrained=False, hidden=16))
+    with pytest.raises(ValueError, match="unknown backbone 'tinynet'"):
+        preflight(cfg)  # unregistered: refused before any cache
+    monkeypatch.setitem(BACKBONES, "tinynet", lambda name, pretrained, with_classifier: TinyNet())  # the line
+    assert preflight(cfg) is None
+    net = build_hmr(cfg, model).eval()
+    assert isinstance(net.backbone, TinyNet)
+    with torch.no_grad():
+        out = net(torch.rand(2, 3, 32, 32))
+    assert out.pose.shape == (2, model.num_dofs) and torch.isfinite(out.pose).all()

@@ -113,6 +113,7 @@ def test_init_backbone_rate_and_frozen_batchnorm(run_a, cache_dir, model):
     import dataclasses
 
     from recovery.predictor import load_predictor
+    from recovery.train import preflight
 
     base = load_config(run_a.parent / "config.yaml")
     cfg = dataclasses.replace(base, optim=dataclasses.replace(base.optim, backbone_lr=0.1),
@@ -121,6 +122,7 @@ def test_init_backbone_rate_and_frozen_batchnorm(run_a, cache_dir, model):
     cache = CropCache([cache_dir])
     layout = ParamLayout(model.num_dofs, model.num_bone_coeffs, cfg.model.num_shape)
     task = HMRTask(cfg, model, theta0(cache, layout, CROP), None, cache.keypoint_names, {})
+    task.model.load_state_dict(preflight(cfg))  # what recovery train does after the task's setup
     src = load_predictor(run_a / "best.pt", log=lambda *a: None).model.state_dict()
     for k, v in task.model.state_dict().items():
         assert torch.equal(v, src[k].to(v.dtype)), k
@@ -132,7 +134,15 @@ def test_init_backbone_rate_and_frozen_batchnorm(run_a, cache_dir, model):
     with one_thread():
         task.training_step(aug([cache[(0, i)] for i in range(4)]), 0)
     assert all(torch.equal(a, m.running_mean) for a, m in zip(before, bn, strict=True))
-    # a checkpoint of another network is refused
+    # a checkpoint of another network, or of another task, is refused before anything is built;
+    # a resumed run does not read it (its last.pt holds every weight)
     other = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, hidden=32))
     with pytest.raises(ValueError, match="not a checkpoint of this network"):
-        HMRTask(other, model, theta0(cache, layout, CROP), None, cache.keypoint_names, {})
+        preflight(other)
+    mesh = dataclasses.replace(cfg, task="mesh", discriminator=type(cfg.discriminator)(),
+                               model=type(cfg.model)(backbone=cfg.model.backbone, pretrained=False),
+                               optim=dataclasses.replace(cfg.optim, backbone_lr=1.0),
+                               train=dataclasses.replace(cfg.train, frozen_bn=False))
+    with pytest.raises(ValueError, match="not a checkpoint of this network"):
+        preflight(mesh)
+    assert preflight(other, resume=True) is None

@@ -320,7 +320,7 @@ def test_movenet_head_settings_are_checked_and_old_networks_keep_their_hash() ->
         ModelConfig(backbone="movenet_lightning", head_input="heatmaps")
     with pytest.raises(ValueError, match="train_blocks > 0"):
         ModelConfig(backbone="resnet18", train_blocks=3)
-    with pytest.raises(ValueError, match="HMR-BLSM settings"):
+    with pytest.raises(ValueError, match="task .mesh. does not use model.head_input; remove them"):
         RecoveryConfig(task="mesh", model=ModelConfig(backbone="movenet_lightning", head_input="keypoints"))
     # networks described before these settings keep their hash (values computed at a4b2525, before them),
     # so their checkpoints still resume and initialise runs

@@ -341,6 +341,38 @@ def test_unknown_config_key(fake_root, train_cache, tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+
+@pytest.mark.parametrize("case", ["unused_section", "unused_key", "unknown_backbone", "missing_init", "init_of_another_network"])
+def test_a_config_the_task_cannot_use_is_refused_before_any_cache(fake_root, run_a, tmp_path, capsys, case):
+    """A section or key the task does not read, a backbone nobody registered, a ``train.init`` that is
+    missing or of another network: one line, exit 2, no run folder and no cache."""
+    cfg = train_config(fake_root, tmp_path / "cache")
+    want = {
+        "unused_section": "task 'mesh' does not use discriminator",
+        "unused_key": "task 'mesh' does not use train.frozen_bn",
+        "unknown_backbone": "unknown backbone 'nopenet'; known: resnet18",
+        "missing_init": str(tmp_path / "absent.pt"),
+        "init_of_another_network": "train.init is not a checkpoint of this network",
+    }[case]
+    if case == "unused_section":
+        cfg["task"], cfg["discriminator"] = "mesh", {"enabled": True, "lr": 0.5}
+    elif case == "unused_key":
+        cfg["task"], cfg["train"]["frozen_bn"] = "mesh", True
+        cfg.pop("discriminator")
+        cfg["model"] = {"backbone": "efficientnet_lite0", "pretrained": False}
+    elif case == "unknown_backbone":
+        cfg["model"]["backbone"] = "nopenet"
+    elif case == "missing_init":
+        cfg["train"]["init"] = str(tmp_path / "absent.pt")
+    else:
+        cfg["train"]["init"] = str(run_a / "best.pt")
+        cfg["model"]["hidden"] = 48
+    path = write_config(tmp_path / "c.yaml", cfg)
+    out = tmp_path / "run"
+    _error(capsys, ["train", str(path), "--out", str(out)], want)
+    assert not out.exists() and not (tmp_path / "cache").exists()
+
+
 # -- export and cache
 
 
