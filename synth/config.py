@@ -26,6 +26,7 @@ from typing import Any
 
 from blsm.config import config_from_dict as from_dict
 from blsm.io import read_yaml
+from synth.backgrounds import KINDS, background_kind
 from synth.camera import MAX_IMAGE_SIDE, CameraConfig
 
 MAX_SAMPLES = 10**9
@@ -215,7 +216,7 @@ class BackgroundConfig:
     ones out, so that train and test sets can hold out backgrounds of one folder. ``align_horizon``
     (images): where the folder's ``plates.json`` gives a plate's horizon, the plate is cropped so
     that its horizon lies on the camera's, and the people stand on the photograph's ground
-    (:func:`synth.backgrounds.crop_backplate_at_horizon`); the sample's background info records
+    (:func:`synth.backgrounds.plates.crop_backplate_at_horizon`); the sample's background info records
     ``horizon_row`` (null where the camera is not upright or no crop fits: a random crop then)."""
 
     kind: str = "default"
@@ -227,14 +228,14 @@ class BackgroundConfig:
     align_horizon: bool = True
 
     def __post_init__(self) -> None:
-        if self.kind not in ("default", "hdri", "images"):
-            raise ValueError(f"background.kind must be default, hdri or images, got {self.kind!r}")
-        if self.kind != "default" and not self.folder:
+        kind = background_kind(self.kind)
+        if kind.needs_folder and not self.folder:
             raise ValueError(f"background.folder is needed with kind: {self.kind}")
         if not self.exposure_ev[0] <= self.exposure_ev[1]:
             raise ValueError(f"background.exposure_ev must be [low, high], got {list(self.exposure_ev)}")
-        if (self.files or self.exclude) and self.kind == "default":
-            raise ValueError("background.files and background.exclude need kind: hdri or images")
+        if (self.files or self.exclude) and not kind.needs_folder:
+            folders = " or ".join(k for k, v in KINDS.items() if v.needs_folder)
+            raise ValueError(f"background.files and background.exclude need kind: {folders}")
         if not 64 <= self.env_width <= 8192:
             raise ValueError(f"background.env_width must be in [64, 8192], got {self.env_width}")
 
@@ -578,11 +579,12 @@ class GeneratorConfig:
                 raise ValueError("sequence.enabled needs poses.source: library (each person plays a motion clip)")
             if self.pipeline == "raw":
                 raise ValueError("sequence.enabled needs a posable pipeline (rigged or blsm), not raw")
-            if self.background.kind == "images":
+            if not background_kind(self.background.kind).follows_cameras:
                 moving = [k for k, w in self.sequence.cameras.weights().items() if w > 0 and k not in ("static", "long_lens")]
                 if moving:
+                    ok = " or ".join(k for k, v in KINDS.items() if v.follows_cameras)
                     raise ValueError(f"sequence: a backplate photograph cannot follow a moving camera ({moving[0]}); "
-                                     "use background kind default or hdri, or only static and long_lens cameras")
+                                     f"use background kind {ok}, or only static and long_lens cameras")
             if self.num * self.sequence.frames > MAX_SAMPLES:
                 raise ValueError(f"num * sequence.frames must be at most {MAX_SAMPLES}, got {self.num * self.sequence.frames}")
         need, limit = render_memory_bytes(self.camera.width, self.camera.height, self.render.spp) / 2**30, max_render_gib()

@@ -34,9 +34,9 @@ import torch
 
 from blsm import mitsuba_util
 from blsm.io import atomic_write, sha256_file
-from synth import backgrounds as bg
 from synth import lock as out_lock
 from synth import worker
+from synth.backgrounds import background_kind
 from synth.config import GeneratorConfig
 from synth.dataset.shards import ShardWriter, SkipSample, WriteError
 from synth.people import subject_pool_warning
@@ -346,13 +346,7 @@ def check_inputs(cfg: GeneratorConfig, model: Any) -> None:
         from synth.sequence import eligible_clips
 
         eligible_clips(cfg, poses.clips, model.dof_limits.numpy())
-    b = cfg.background
-    if b.kind == "hdri":
-        bg.check_files(bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude), b.kind, b.env_width)
-    elif b.kind == "images":
-        bg.check_files(bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude), b.kind, b.env_width)
-        if b.align_horizon:
-            bg.read_horizons(b.folder)  # a bad plates.json is an error before any work
+    background_kind(cfg.background.kind).check(cfg.background)
     pool = cfg.subjects.count
     if cfg.subjects.source == "folder":
         from synth.scans import check_scans, subject_folders
@@ -465,8 +459,7 @@ def cfg_json(cfg: GeneratorConfig) -> dict:
         d.pop("labels")
     if cfg.people.max == 1 and cfg.people.distinct is None:  # one person an image: drawn as before the key
         d["people"].pop("distinct")
-    b = cfg.background
-    if b.kind != "images" or not bg.read_horizons(b.folder):
+    if "align_horizon" not in background_kind(cfg.background.kind).records(cfg.background):
         d["background"].pop("align_horizon")
     return d
 

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 
 from blsm.color import linear_to_srgb, srgb_to_linear
-from synth import backgrounds as bg
 from synth import labels as lab
+from synth.backgrounds import Background, background_kind
 from synth.camera import facing_yaw_deg, outline_index, sample_camera
 from synth.config import GeneratorConfig
 from synth.dataset import format as fmt
@@ -313,13 +313,8 @@ class SampleMaker:
         self.bone_to_part = lab.bone_parts(m.vertex_bones.numpy(), m.vertex_parts.numpy(), m.num_joints)
         self.regions = lab.keypoint_regions(m.keypoint_joint.numpy(), m.keypoint_vertices.numpy(), m.vertex_bones.numpy(), m.parents)
         self.is_joint = m.keypoint_joint.numpy() >= 0
-        b = cfg.background
-        self.bg_files = []
-        if b.kind == "hdri":
-            self.bg_files = bg.list_folder(b.folder, bg.HDRI_EXT, "HDRI", b.files, b.exclude)
-        elif b.kind == "images":
-            self.bg_files = bg.list_folder(b.folder, bg.IMAGE_EXT, "background image", b.files, b.exclude)
-        self.horizons = bg.read_horizons(b.folder) if b.kind == "images" and b.align_horizon else {}
+        self.backdrop = background_kind(cfg.background.kind)
+        self._backdrop_state = self.backdrop.open(cfg.background)  # its files and caches
         # Hair is grown on Anny's stand-in people only: user scans carry their own.
         self.hair = cfg.hair.enabled and cfg.pipeline != "raw" and cfg.subjects.source == "anny"
         # With the backdrop composited, the path tracer renders only the people's window
@@ -327,7 +322,6 @@ class SampleMaker:
         # False renders whole frames (tests and benchmarks compare).
         self.windowed = True
         self.head_bone = list(m.bone_names).index("head")
-        self._bg_cache: dict[Path, np.ndarray] = {}
         self._rigs: dict[int, Rig] = {}
         self._renderers: dict[tuple, PeopleRenderer] = {}
         self.topology = None  # labels.topology: the people's vertices in a second topology (synth.topology)
@@ -376,33 +370,12 @@ class SampleMaker:
         self._rigs[si] = rig
         return rig
 
-    def background(self, rng: np.random.Generator, camera: Any) -> bg.Background:
+    def background(self, rng: np.random.Generator, camera: Any) -> Background:
+        """The image's background: the exposure and rotation, then the kind's own draws."""
         b, cam = self.cfg.background, self.cfg.camera
         scale = float(2.0 ** rng.uniform(*b.exposure_ev))
         rot = float(rng.uniform(0, 2 * math.pi))
-        if b.kind == "hdri":
-            f = self.bg_files[int(rng.integers(len(self.bg_files)))]
-            if f not in self._bg_cache:
-                self._bg_cache[f] = bg.load_hdri(f, b.env_width)
-            return bg.Background("hdri", self._bg_cache[f], rot, scale, None, {"file": f.name, "rotation": rot, "exposure": scale})
-        env, info = bg.procedural_sky(b.env_width, rng)
-        if b.kind == "images":
-            f = self.bg_files[int(rng.integers(len(self.bg_files)))]
-            if f not in self._bg_cache:
-                self._bg_cache[f] = bg.read_image(f)
-            extra: dict[str, Any] = {}
-            plate = None
-            if self.horizons:  # a described bank: the plate's horizon on the camera's (plates.json)
-                hz = self.horizons.get(f.name)
-                row = bg.horizon_row(camera.K, camera.R) if hz is not None else None
-                if row is not None:
-                    plate = bg.crop_backplate_at_horizon(self._bg_cache[f], hz, cam.width, cam.height, row, rng)
-                extra = {"horizon_row": row if plate is not None else None}
-            if plate is None:
-                plate = bg.crop_backplate(self._bg_cache[f], cam.width, cam.height, rng)
-            return bg.Background("images", env, rot, scale, plate,
-                                 {"file": f.name, "rotation": rot, "exposure": scale, **info, **extra})
-        return bg.Background("default", env, rot, scale, None, {"rotation": rot, "exposure": scale, **info})
+        return self.backdrop.draw(self._backdrop_state, b, rng, camera, (cam.width, cam.height), rot, scale)
 
     def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool) -> PeopleRenderer:
         """The scene for these people's meshes. People of one topology and texture size (every
@@ -478,7 +451,7 @@ class SampleMaker:
         p.si, p.rig = si, rig
         return p
 
-    def render_frame(self, index: int, people: list[Person], camera: Any, cam_info: dict, back: bg.Background,
+    def render_frame(self, index: int, people: list[Person], camera: Any, cam_info: dict, back: Background,
                      rng: np.random.Generator, occluders: list[Any] = ()) -> tuple[Any, dict[str, Any]]:
         """Render the placed ``people`` (each with its ``outline``) and the ``occluders``
         (:class:`synth.occluders.Occluder`) in front of them, and make their labels."""
@@ -525,7 +498,7 @@ class SampleMaker:
 
         return {"hair_vertices": p.hair, "hair_faces": hair_faces(), "hair_bone": self.head_bone}
 
-    def _composite_backdrop(self, r: PeopleRenderer, frame: Any, camera: Any, cam_info: dict, back: bg.Background,
+    def _composite_backdrop(self, r: PeopleRenderer, frame: Any, camera: Any, cam_info: dict, back: Background,
                             outline: np.ndarray, rng: np.random.Generator) -> None:
         """Composite the backdrop behind the people (``outline``: their hull vertices): darkened where
         they shadow the ground (:mod:`synth.ground`, with ``ground.shadows``), blurred by the thin

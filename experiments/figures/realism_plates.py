@@ -16,7 +16,7 @@ from PIL import Image
 
 from blsm.camera import look_at_camera
 from blsm.color import linear_to_srgb
-from synth import backgrounds as bg
+from synth.backgrounds import hdri as bg
 from synth.ground import env_backdrop
 
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "out/plates")

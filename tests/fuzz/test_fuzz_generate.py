@@ -239,9 +239,9 @@ def test_bad_backplate_is_found_before_any_work(tmp_path, capfd, fake_run, monke
         huge_png(bad)
         problem = "png header claims a 1144 MB image"  # OpenImageIO's own guard
     else:
-        from synth import backgrounds
+        from synth.backgrounds import files
 
-        monkeypatch.setattr(backgrounds, "MAX_PIXELS", 64 * 64 - 1)
+        monkeypatch.setattr(files, "MAX_PIXELS", 64 * 64 - 1)
         write_png(bad, 64, 64)
         problem = "image is 64x64 px, over the limit of 4095 pixels"
     rc, err, before = _generate_with(tmp_path, capfd, f"{{kind: images, folder: {folder}}}")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from blsm.camera import look_at_camera
-from synth import backgrounds as bg
+from synth.backgrounds import plates as bg
 
 
 def _plate(h: int = 300, w: int = 400, horizon: float = 0.4) -> np.ndarray:

@@ -215,6 +215,47 @@ def test_hdri_backgrounds_validate(tiny, tmp_path):
     assert doc["background"]["kind"] == "hdri" and doc["background"]["file"].endswith(".exr")
 
 
+def test_a_new_background_kind_is_one_file_and_one_registration_line(tiny, tmp_path, monkeypatch):
+    """What adding a background kind costs (issue 54): its module (the class below) and one line of
+    ``synth.backgrounds.KINDS``; then the config accepts it, a run checks, draws and records it, and
+    ``synth validate`` passes, with nothing else edited."""
+    from synth.backgrounds import KINDS, Background
+    from synth.backgrounds.sky import procedural_sky
+
+    class Grey:  # the new file's content: a plain grey backdrop, the people lit by the procedural sky
+        name, needs_folder, follows_cameras = "grey", False, True
+
+        def check(self, cfg):
+            pass
+
+        def open(self, cfg):
+            return None
+
+        def draw(self, state, cfg, rng, camera, size, rotation, scale):
+            env, info = procedural_sky(cfg.env_width, rng)
+            level = float(rng.uniform(0.1, 0.5))
+            plate = np.full((size[1], size[0], 3), level, np.float32)
+            return Background("grey", env, rotation, scale, plate, {"level": level, "rotation": rotation, "exposure": scale})
+
+        def records(self, cfg):
+            return set()
+
+    with pytest.raises(ValueError, match="background.kind must be one of default, hdri, images, got 'grey'"):
+        BackgroundConfig(kind="grey")
+    monkeypatch.setitem(KINDS, "grey", Grey())  # the registration line
+    out = tmp_path / "grey"
+    out.mkdir()
+    _copy_subjects(tiny, out)
+    generate(dataclasses.replace(TINY, num=2, background=BackgroundConfig(kind="grey", env_width=256)), out, progress=False)
+    assert validate(out).failures == []
+    sample = fmt.decode_sample(read_shard(out / "shard-000000.tar")["000000000"])
+    assert sample["json"]["background"]["kind"] == "grey" and 0.1 <= sample["json"]["background"]["level"] <= 0.5
+    behind = sample["rgb"][sample["mask"] == 0].astype(int)  # the backdrop's pixels: grey, but where
+    # the people's edges blend in (coverage under one mask pixel) and the lens' effects reach
+    spread = behind.max(1) - behind.min(1)
+    assert len(behind) > 1000 and np.percentile(spread, 90) <= 3, np.percentile(spread, [50, 90, 99])
+
+
 def _plates(folder: Path, describe: bool) -> Path:
     """Two backplates, sky blue above 45 % of the height and grass green below; with ``describe``
     their plates.json gives that horizon."""
@@ -232,7 +273,7 @@ def _plates(folder: Path, describe: bool) -> Path:
 
 
 def test_backplates_meet_the_cameras_horizon(tiny, tmp_path):
-    from synth import backgrounds as bg
+    from synth.backgrounds import plates as bg
 
     cfg = dataclasses.replace(TINY, num=4, camera=dataclasses.replace(TINY.camera, rare_rate=0.0, truncation_rate=0.0),
                               background=BackgroundConfig(kind="images", folder=str(_plates(tmp_path / "plates", True))))
