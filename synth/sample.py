@@ -297,6 +297,32 @@ class PoseSource:
 # A worker's state
 
 
+@dataclass
+class Scene:
+    """One image's world, everything its render and labels read, drawn before either from the
+    sample's random stream (:meth:`SampleMaker.draw_scene`; a sequence makes one per frame).
+
+    Attributes:
+        index: the sample's index.
+        people: the posed and placed people (mesh, texture and rig, hair, cloth; each with its
+            ``outline``).
+        camera: the image's :class:`blsm.camera.Camera`, which holds the image size (``width``,
+            ``height``): the one place a scene says it.
+        camera_info: what the camera draw records (view, truncation, lens).
+        background: the environment that lights the people, and the backplate behind them.
+        occluders: objects in front of or under the people (:class:`synth.occluders.Occluder`).
+        extra: top-level label keys the scene adds (the occluders' records; a sequence's frame).
+    """
+
+    index: int
+    people: list[Person]
+    camera: Any
+    camera_info: dict[str, Any]
+    background: Background
+    occluders: list[Any] = field(default_factory=list)
+    extra: dict[str, Any] | None = None
+
+
 class SampleMaker:
     """Everything a worker needs to make samples: model, subjects, poses, backgrounds, scenes."""
 
@@ -404,7 +430,15 @@ class SampleMaker:
         return r
 
     def make(self, index: int, rng: np.random.Generator) -> dict[str, bytes]:
-        """Sample ``index``'s fields, from ``rng`` (:func:`synth.dataset.shards.sample_rng`) alone."""
+        """Sample ``index``'s fields, from ``rng`` (:func:`synth.dataset.shards.sample_rng`) alone:
+        the scene drawn, rendered and labelled, then encoded."""
+        scene = self.draw_scene(index, rng)
+        frame, labels = self.render_frame(scene, rng)
+        return self.encode(scene, frame, labels)
+
+    def draw_scene(self, index: int, rng: np.random.Generator) -> Scene:
+        """Sample ``index``'s :class:`Scene`: its people drawn, posed and placed, the camera, the
+        background and the occluders, in that order of draws from ``rng``."""
         cfg = self.cfg
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
         people: list[Person] = []
@@ -426,8 +460,7 @@ class SampleMaker:
             o = cfg.occluders
             occluders += place_occluders([footprint(p.outline) for p in people], camera, o.prob, o.max, cfg.people.gap, rng)
         extra = {"occluders": [q.to_json() for q in occluders]} if cfg.occluder_slots else None
-        frame, labels = self.render_frame(index, people, camera, cam_info, back, rng, occluders)
-        return self.encode(index, camera, cam_info, back, people, frame, labels, extra)
+        return Scene(index, people, camera, cam_info, back, occluders, extra)
 
     def draw_person(self, rng: np.random.Generator, taken: Sequence[int] = ()) -> Person:
         """A subject drawn (:func:`draw_subject`, the image's people so far having subjects ``taken``)
@@ -451,11 +484,12 @@ class SampleMaker:
         p.si, p.rig = si, rig
         return p
 
-    def render_frame(self, index: int, people: list[Person], camera: Any, cam_info: dict, back: Background,
-                     rng: np.random.Generator, occluders: list[Any] = ()) -> tuple[Any, dict[str, Any]]:
-        """Render the placed ``people`` (each with its ``outline``) and the ``occluders``
-        (:class:`synth.occluders.Occluder`) in front of them, and make their labels."""
+    def render_frame(self, scene: Scene, rng: np.random.Generator) -> tuple[Any, dict[str, Any]]:
+        """Render ``scene`` (its placed people and the occluders in front of them) and make their
+        labels; ``rng`` draws the render's seed (and the backdrop's lens effects)."""
         cfg = self.cfg
+        index, people, camera, cam_info = scene.index, scene.people, scene.camera, scene.camera_info
+        back, occluders = scene.background, scene.occluders
         occ = []
         if occluders:
             from synth.occluders import occluder_mesh
@@ -534,11 +568,14 @@ class SampleMaker:
                 float(lens.circle_of_confusion(np.array([np.inf]), cam_info["focus_m"], f_px, aperture)[0]), 3)}
         frame.rgb = (frame.rgb + (1.0 - frame.alpha[..., None]) * backdrop).astype(np.float32)
 
-    def encode(self, index, camera, cam_info, back, people: list[Person], frame, labels,
-               extra: dict[str, Any] | None = None, extra_people: list[dict[str, Any]] | None = None) -> dict[str, bytes]:
-        """The sample's fields; ``extra`` adds top-level label keys and ``extra_people`` keys per
-        person (a sequence's, :mod:`synth.sequence`)."""
+    def encode(self, scene: Scene, frame: Any, labels: dict[str, Any],
+               extra_people: list[dict[str, Any]] | None = None) -> dict[str, bytes]:
+        """The sample's fields through the dataset format (:mod:`synth.dataset.format`): the image,
+        the labels and the scene's record; ``scene.extra`` adds top-level label keys and
+        ``extra_people`` keys per person (a sequence's, :mod:`synth.sequence`)."""
         m = self.model
+        index, camera, cam_info, back, people = scene.index, scene.camera, scene.camera_info, scene.background, scene.people
+        extra = scene.extra
         plist = [
             {**self._person_doc(p, lp), **(extra_people[i] if extra_people else {})}
             for i, (p, lp) in enumerate(zip(people, labels["people"]))

@@ -55,7 +55,7 @@ from synth.camera import outline_index
 from synth.camera_paths import Track, choose_kind, focal_mm, sample_path
 from synth.dataset.format import CONTACT_REGIONS
 from synth.people import draw_subject, footprint
-from synth.sample import Person
+from synth.sample import Person, Scene
 
 REGION_KEYPOINT = {"heel_l": "heel_l", "heel_r": "heel_r", "toe_l": "toe_tip_l", "toe_r": "toe_tip_r",
                    "hand_l": "wrist_l", "hand_r": "wrist_r", "knee_l": "knee_l", "knee_r": "knee_r",
@@ -481,6 +481,7 @@ class SequenceMaker:
         frame_people = [p.frames[f] for p in people]
         cam_info = {**path.base, "view": "normal", "truncated": False, "truncation": 0.0, "truncation_side": "",
                     "focal_mm": round(focal_mm(camera), 6), "path": path.kind}  # fmt: skip
+        scene = Scene(index, frame_people, camera, cam_info, back)
         blur = self.cfg.motion_blur
         if blur.enabled and blur.subframes > 1:
             rgb = None
@@ -488,12 +489,12 @@ class SequenceMaker:
             offsets = [o for o in offsets if o != 0.0]
             for o in offsets:  # the other sub-frames first; the centre's render gives the labels
                 sub_people = [self._posed_at(p, t + o) for p in people]
-                fr_o, _ = m.render_frame(index, sub_people, path.at(t + o), cam_info, back, rng)
+                fr_o, _ = m.render_frame(Scene(index, sub_people, path.at(t + o), cam_info, back), rng)
                 rgb = fr_o.rgb if rgb is None else rgb + fr_o.rgb
-            frame, labels = m.render_frame(index, frame_people, camera, cam_info, back, rng)
+            frame, labels = m.render_frame(scene, rng)
             frame.rgb = ((rgb + frame.rgb) / blur.subframes).astype(np.float32)
         else:
-            frame, labels = m.render_frame(index, frame_people, camera, cam_info, back, rng)
+            frame, labels = m.render_frame(scene, rng)
         c = self.cfg.contact
         to_world = np.eye(4)
         to_world[:3, :3], to_world[:3, 3] = camera.R.T, -camera.R.T @ camera.t
@@ -508,7 +509,8 @@ class SequenceMaker:
             extra_people.append({"track": i, "velocity_3d": _l(sl["velocity_3d"]), "contact": sl["contact"],
                                  "contact_velocity": sl["contact_velocity"], "in_view": bool(lp["pixels"] > 0),
                                  "clip_window": p.window})  # fmt: skip
-        return m.encode(index, camera, cam_info, back, frame_people, frame, labels, extra, extra_people)
+        scene.extra = extra
+        return m.encode(scene, frame, labels, extra_people)
 
     def _posed_at(self, p: Actor, t: float) -> Person:
         """Person ``p`` posed at time ``t`` of the sequence (a motion-blur sub-frame), placed."""

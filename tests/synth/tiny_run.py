@@ -70,8 +70,8 @@ def drawing_maker(cfg: GeneratorConfig, tiny: Path, pool: int) -> Any:
         p.si = si
         return p
 
-    def stop(index: int, people: list[Any], *args: Any, **kwargs: Any) -> Any:
-        raise Drawn([p.si for p in people])
+    def stop(scene: Any, *args: Any, **kwargs: Any) -> Any:
+        raise Drawn([p.si for p in scene.people])
 
     m.pose, m.render_frame = pose_as, stop
     return m
