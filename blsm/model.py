@@ -30,7 +30,7 @@ DEFAULT_MODEL = Path(__file__).parent / "data" / "blsm_anny_v1.npz"
 DEFAULT_RIG = Path(__file__).parent / "data" / "blsm_anny_rig.npz"
 """The packaged rig the model is learnt from: template (on the mean Anny body), skeleton, blend
 weights, no blendshapes (``blsm build-anny --rig``). It fixes the topology, and with it the
-ground-truth correspondence of Anny stand-in scans (:mod:`blsm.learn.population`)."""
+ground-truth correspondence of Anny stand-in scans (:mod:`blsm.learn.scans.population`)."""
 
 
 @dataclass

@@ -38,14 +38,14 @@ def main() -> None:
         "--package", action="store_true", help="copy the result to blsm/data/landmark_detector.pt"
     )
     args = ap.parse_args()
-    from blsm.learn.landmark_detector import (
+    from blsm.learn.markerless.landmark_detector import (
         DetectorTrainConfig,
         make_negative_views,
         make_training_views,
         train_detector,
     )
-    from blsm.learn.population import Artefacts, make_population
-    from blsm.learn.scans import landmark_names
+    from blsm.learn.scans.format import landmark_names
+    from blsm.learn.scans.population import Artefacts, make_population
 
     log = lambda m: print(m, file=sys.stderr, flush=True)  # noqa: E731
     for name, (n, seed, art) in POPULATIONS.items():

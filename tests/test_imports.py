@@ -172,7 +172,7 @@ def graph() -> ImportGraph:
 def test_graph_sees_the_packages(graph: ImportGraph) -> None:
     assert "blsm.render" in graph.modules and "synth.render" in graph.modules
     assert "blsm.camera" in graph.edges["synth.camera"]
-    assert "blsm.learn.fit" in graph.edges["blsm.learn.evaluate"]
+    assert "blsm.learn.evaluation.fit" in graph.edges["blsm.learn.evaluation.evaluate"]
 
 
 def test_no_import_cycles(graph: ImportGraph) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 
 import torch
 
-from blsm.learn.evaluate import DEFAULT_KS
+from blsm.learn.evaluation.evaluate import DEFAULT_KS
 
 # Help lines of ``blsm --help``.
 HELP = {
@@ -73,7 +73,7 @@ def add_parsers(sub: Any) -> None:
     reg.add_argument("--landmarks", type=Path, help="the scan's located landmarks, JSON {name: [x, y, z]} "
                      "(default: <scan stem>.landmarks.json beside a mesh; inside a .npz scan)")
     reg.add_argument("--landmark-definitions", type=Path, help="template landmark definitions YAML "
-                     "(default: blsm/data/landmarks.yaml via blsm.learn.scans)")
+                     "(default: blsm/data/landmarks.yaml via blsm.learn.scans.format)")
     reg.add_argument("--config", type=Path, help="RegisterConfig YAML (default: configs/blsm/register.yaml "
                      "when present, else the thesis' values)")
     reg.add_argument("--model", type=Path, help="BLSM model file (default: the packaged one)")
@@ -91,7 +91,7 @@ def add_parsers(sub: Any) -> None:
     reg.add_argument("--keypoint-config", type=Path, help="KeypointFitConfig YAML of the keypoint registration "
                      "(Eqs. 6.4-6.6; default: its built-in values)")
     reg.add_argument("--keypoint-regressor", default=None, help="A_kp of Eq. 6.4 learnt for the detector's "
-                     "keypoints (blsm.learn.keypoint_regressor; default: the packaged one for MediaPipe; 'none': "
+                     "keypoints (blsm.learn.markerless.keypoint_regressor; default: the packaged one for MediaPipe; 'none': "
                      "the detector's names mapped onto the model's keypoints)")
     reg.add_argument("--sequence", action="store_true", help="the scans (or the folder's scans, sorted by "
                      "name) are frames of one subject: one bone and shape, poses smoothed in time (Eq. 6.4)")
@@ -138,11 +138,13 @@ def add_parsers(sub: Any) -> None:
     smpl.add_argument("--lm-iterations", type=int, default=25)
     smpl.add_argument("--out", required=True, help="output .npz")
     smpl.set_defaults(func=command("train-smpl", cmd_train_smpl))
-    from blsm.learn.reparam_cli import add_parser as add_reparam  # blsm reparam (thesis ch. 3)
+    from blsm.learn.reparam.cli import add_parser as add_reparam  # blsm reparam (thesis ch. 3)
     add_reparam(sub, HELP["reparam"], command)
-    from blsm.learn.markerless import add_parser as add_scan_keypoints  # blsm scan-keypoints
+    from blsm.learn.markerless.keypoints import add_parser as add_scan_keypoints  # blsm scan-keypoints
     add_scan_keypoints(sub, HELP["scan-keypoints"], command)
-    from blsm.learn.landmark_detector import add_parser as add_detector  # blsm train-landmark-detector
+    from blsm.learn.markerless.landmark_detector import (
+        add_parser as add_detector,  # blsm train-landmark-detector
+    )
     add_detector(sub, HELP["train-landmark-detector"], command)
 
 
@@ -151,7 +153,7 @@ def _add_evaluate(sub: Any) -> None:
                         description="Held-out evaluation of BLSM-linear against SMPL-reimpl "
                                     "(thesis Sec. 5.5.2).")
     ev.add_argument("--model", default=None, help="BLSM model .npz (default: the packaged one)")
-    ev.add_argument("--baseline", default=None, help="SMPL-reimpl .npz (blsm.learn.smpl_reimpl)")
+    ev.add_argument("--baseline", default=None, help="SMPL-reimpl .npz (blsm.learn.evaluation.smpl_reimpl)")
     ev.add_argument("--registrations", required=True, help="folder of blsm-registration .npz files")
     ev.add_argument("--scans", default=None, help="population / scan folder for ground truth")
     ev.add_argument("--split", default="test", choices=("train", "test", "all"))
@@ -177,7 +179,7 @@ def _add_evaluate(sub: Any) -> None:
 
 def cmd_scans_make(args: argparse.Namespace) -> int:
     """``blsm scans make``: a population folder of Anny stand-in scans."""
-    from blsm.learn.population import make_population
+    from blsm.learn.scans.population import make_population
 
     index = make_population(
         args.out, args.subjects, args.posed_subjects, args.poses, args.seed, args.test_fraction,
@@ -197,11 +199,11 @@ def cmd_register(args: argparse.Namespace) -> int:
     ``--sequence`` registers the scans as frames of one subject (thesis Sec. 6.3).
     """
     import blsm
-    from blsm.learn.landmark_fit import default_selection, read_landmark_definitions
-    from blsm.learn.register import register, scan_data
-    from blsm.learn.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
-    from blsm.learn.registrations import save_registration
-    from blsm.learn.scans import load_scan
+    from blsm.learn.registration.landmark_fit import default_selection, read_landmark_definitions
+    from blsm.learn.registration.register import register, scan_data
+    from blsm.learn.registration.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
+    from blsm.learn.registration.registrations import save_registration
+    from blsm.learn.scans.format import load_scan
 
     torch.set_num_threads(1)
     model = blsm.load(args.model)
@@ -262,10 +264,10 @@ def _scan_files(folder: Path) -> list[Path]:
 
 
 def _detect_landmarks(jobs: list, args: argparse.Namespace) -> list:
-    """Each scan with its landmarks located from its renders (``blsm.learn.markerless_landmarks``)."""
-    from blsm.learn.markerless import MarkerlessConfig
-    from blsm.learn.markerless_landmarks import LandmarkDetectionConfig, detect_landmarks, with_landmarks
-    from blsm.learn.multiview import ViewConfig
+    """Each scan with its landmarks located from its renders (``blsm.learn.markerless.landmarks``)."""
+    from blsm.learn.markerless.keypoints import MarkerlessConfig
+    from blsm.learn.markerless.landmarks import LandmarkDetectionConfig, detect_landmarks, with_landmarks
+    from blsm.learn.markerless.multiview import ViewConfig
     from blsm.pose2d.landmark_net import LandmarkDetector
 
     if args.views < 2:
@@ -285,16 +287,16 @@ def _detect_landmarks(jobs: list, args: argparse.Namespace) -> list:
 
 def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namespace, detect: bool) -> int:
     """Registration from keypoints (thesis Sec. 6.3): landmarks as keypoints where every scan has
-    them (and ``detect`` is off), else MediaPipe keypoints (``blsm.learn.markerless``)."""
+    them (and ``detect`` is off), else MediaPipe keypoints (``blsm.learn.markerless.keypoints``)."""
     import numpy as np
 
-    from blsm.learn.keypoint_fit import load_keypoint_config
-    from blsm.learn.register import KeypointTargets, register_keypoints, scan_data
-    from blsm.learn.registrations import save_registration
+    from blsm.learn.registration.keypoint_fit import load_keypoint_config
+    from blsm.learn.registration.register import KeypointTargets, register_keypoints, scan_data
+    from blsm.learn.registration.registrations import save_registration
 
     if args.keypoint_config is not None:
         load_keypoint_config(args.keypoint_config)  # fail before the detector runs
-    from blsm.learn.keypoint_regressor import DEFAULT_REGRESSOR, load_keypoint_regressor
+    from blsm.learn.markerless.keypoint_regressor import DEFAULT_REGRESSOR, load_keypoint_regressor
 
     regressor, path = None, None
     if args.keypoint_regressor != "none":
@@ -308,8 +310,8 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
             targets.append(KeypointTargets(sel.names, scan_data(s, sel, str(p)).landmarks, np.ones(len(sel)),
                                            {"source": "landmarks"}))
     else:
-        from blsm.learn.markerless import MarkerlessConfig, scan_keypoints
-        from blsm.learn.multiview import ViewConfig
+        from blsm.learn.markerless.keypoints import MarkerlessConfig, scan_keypoints
+        from blsm.learn.markerless.multiview import ViewConfig
         from blsm.pose2d.detectors import MediaPipeDetector
 
         if args.views < 2:
@@ -334,7 +336,7 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
     if args.fps is not None:
         import dataclasses
 
-        from blsm.learn.keypoint_fit import KeypointFitConfig
+        from blsm.learn.registration.keypoint_fit import KeypointFitConfig
 
         kcfg = dataclasses.replace(kcfg or KeypointFitConfig(), fps=args.fps)
     kps = regressor if sel is None else None
@@ -353,8 +355,8 @@ def _register_keypoints(model, jobs: list, cfg, selection, args: argparse.Namesp
 def cmd_learn(args: argparse.Namespace) -> int:
     """``blsm learn REGISTRATION ... --out MODEL``: the model and its JSON report."""
     from blsm import io
-    from blsm.learn.registrations import load_registrations
-    from blsm.learn.train import TrainConfig, learn_model, load_train_config
+    from blsm.learn.registration.registrations import load_registrations
+    from blsm.learn.training.train import TrainConfig, learn_model, load_train_config
     from blsm.model import load
 
     try:
@@ -385,10 +387,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """``blsm evaluate``: BLSM-linear vs SMPL-reimpl on held-out registrations."""
     import blsm
-    from blsm.learn.evaluate import EvalConfig, evaluate, write_report
-    from blsm.learn.fit import BLSMFittable, FitConfig, Fittable
-    from blsm.learn.registrations import load_registration_set, spread_over_subjects
-    from blsm.learn.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
+    from blsm.learn.evaluation.evaluate import EvalConfig, evaluate, write_report
+    from blsm.learn.evaluation.fit import BLSMFittable, FitConfig, Fittable
+    from blsm.learn.evaluation.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
+    from blsm.learn.registration.registrations import load_registration_set, spread_over_subjects
 
     try:
         ks = tuple(int(k) for k in args.ks.split(","))
@@ -422,9 +424,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 def cmd_train_smpl(args: argparse.Namespace) -> int:
     """``blsm train-smpl``: SMPL-reimpl trained on the training split of a folder of registrations."""
     import blsm
-    from blsm.learn.fit import FitConfig
-    from blsm.learn.registrations import load_registration_set
-    from blsm.learn.smpl_reimpl import SMPLTrainConfig, train_smpl_reimpl
+    from blsm.learn.evaluation.fit import FitConfig
+    from blsm.learn.evaluation.smpl_reimpl import SMPLTrainConfig, train_smpl_reimpl
+    from blsm.learn.registration.registrations import load_registration_set
 
     try:
         model = blsm.load(args.model)

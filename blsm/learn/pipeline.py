@@ -2,13 +2,13 @@
 
 The run, each step resumable (what is on disk and matches is kept, never overwritten silently):
 
-1. **Population** (:mod:`blsm.learn.population`): the Anny stand-in scans (CAESAR-like rest scans of
+1. **Population** (:mod:`blsm.learn.scans.population`): the Anny stand-in scans (CAESAR-like rest scans of
    every subject, D-FAUST-like posed scans of some), with held-out subjects, in ``WORK/population``.
    A user's own scan folder in the same format can be named instead (``population.folder``).
-2. **Registration** (:mod:`blsm.learn.register`, Eqs. 5.13-5.25): every scan, in worker processes,
+2. **Registration** (:mod:`blsm.learn.registration.register`, Eqs. 5.13-5.25): every scan, in worker processes,
    one ``blsm-registration`` file per scan in ``WORK/registrations`` (existing files are kept, so an
    interrupted run continues where it stopped).
-3. **Learning** (:mod:`blsm.learn.train`, Eqs. 5.26-5.31) on the training subjects' registrations:
+3. **Learning** (:mod:`blsm.learn.training.train`, Eqs. 5.26-5.31) on the training subjects' registrations:
    the model file ``MODEL`` (written atomically) and its report ``MODEL`` with ``.report.json``.
 
 The config is one YAML file with the sections ``run``, ``population``, ``registration``, ``train``
@@ -32,8 +32,8 @@ import torch
 
 from blsm import io
 from blsm.config import config_from_dict
-from blsm.learn.register_config import RegisterConfig
-from blsm.learn.train import TrainConfig
+from blsm.learn.registration.register_config import RegisterConfig
+from blsm.learn.training.train import TrainConfig
 
 
 def _log(msg: str) -> None:
@@ -76,7 +76,7 @@ class RunConfig:
 
 @dataclass(frozen=True)
 class PopulationConfig:
-    """The scan population (:func:`blsm.learn.population.make_population`).
+    """The scan population (:func:`blsm.learn.scans.population.make_population`).
 
     Attributes:
         folder: an existing population folder to use instead of making one ("" = make
@@ -98,19 +98,19 @@ class PopulationConfig:
 
 @dataclass(frozen=True)
 class EvaluationConfig:
-    """Held-out evaluation after learning (:mod:`blsm.learn.evaluate`).
+    """Held-out evaluation after learning (:mod:`blsm.learn.evaluation.evaluate`).
 
     Attributes:
         enabled: run it.
         coeffs: numbers of shape coefficients compared (Fig. 5.6).
         max_test: at most this many held-out registrations are fitted (0: all), chosen by
-            :func:`blsm.learn.registrations.spread_over_subjects`: all frames of ``sequences`` posed
+            :func:`blsm.learn.registration.registrations.spread_over_subjects`: all frames of ``sequences`` posed
             subjects, then round-robin over the other subjects.
         sequences: held-out subjects with posed scans whose every registration is kept (for pose
             generalisation).
         max_train_subjects: SMPL-reimpl is trained on the registrations of at most this many
             training subjects (its per-registration pose fits are the slow part; 0: all).
-        iterations, lm_iterations: the staged fit (:class:`blsm.learn.fit.FitConfig`).
+        iterations, lm_iterations: the staged fit (:class:`blsm.learn.evaluation.fit.FitConfig`).
         pose_generalisation: also fit shape on one frame and pose only on the others (Fig. 5.7).
         out: markdown report (plots and JSON beside it), relative to the current directory;
             "" = ``MODEL`` with ``_evaluation.md``.
@@ -156,7 +156,7 @@ def population_step(cfg: PipelineConfig, work: Path, model_path: str) -> tuple[P
     """The population folder and its index: the configured one, or made (once) in WORK with the
     initial model's template and skeleton (the ground-truth correspondence is its template's)."""
     import blsm
-    from blsm.learn.population import make_population, read_population
+    from blsm.learn.scans.population import make_population, read_population
 
     p = cfg.population
     if p.folder:
@@ -211,7 +211,7 @@ _WORKER: dict[str, Any] = {}
 
 def _init_register_worker(model_path: str | None, reg_cfg: dict) -> None:
     import blsm
-    from blsm.learn.landmark_fit import default_selection
+    from blsm.learn.registration.landmark_fit import default_selection
 
     torch.set_num_threads(1)
     model = blsm.load(model_path)
@@ -219,9 +219,9 @@ def _init_register_worker(model_path: str | None, reg_cfg: dict) -> None:
 
 
 def _register_chunk(chunk: list[tuple[str, dict, str]]) -> list[str]:
-    from blsm.learn.register import register
-    from blsm.learn.registrations import save_registration
-    from blsm.learn.scans import load_scan
+    from blsm.learn.registration.register import register
+    from blsm.learn.registration.registrations import save_registration
+    from blsm.learn.scans.format import load_scan
 
     scans = []
     for path, extra, _ in chunk:
@@ -258,7 +258,7 @@ def registration_step(cfg: PipelineConfig, work: Path, jobs: list[tuple[Path, di
     _log(f"registration: {len(jobs) - len(todo)} of {len(jobs)} scans already registered")
     if not todo:
         return out
-    from blsm.learn.scans import load_scan
+    from blsm.learn.scans.format import load_scan
 
     for path, _, _ in todo:  # every scan is checked before any work: a bad one is a one-line error
         load_scan(path, require_landmarks=True)
@@ -297,8 +297,8 @@ def learning_step(
 ) -> dict:
     """Learn the model from the registrations (train split for the model; test kept for the report)."""
     import blsm
-    from blsm.learn.registrations import load_registrations
-    from blsm.learn.train import learn_model
+    from blsm.learn.registration.registrations import load_registrations
+    from blsm.learn.training.train import learn_model
 
     regs = load_registrations([reg_folder])
     failed = [r for r in regs if _landmark_rms(r) > cfg.run.max_landmark_rms_mm]
@@ -374,12 +374,12 @@ def registration_summary(regs: list[Any], population: Path | None = None, faces:
 
 def evaluation_step(cfg: PipelineConfig, reg_folder: Path, population: Path, out_model: Path, work: Path) -> dict:
     """Train SMPL-reimpl on the same training registrations and compare it with the learned BLSM
-    on the held-out ones (Sec. 5.5; :mod:`blsm.learn.evaluate`)."""
+    on the held-out ones (Sec. 5.5; :mod:`blsm.learn.evaluation.evaluate`)."""
     import blsm
-    from blsm.learn.evaluate import EvalConfig, evaluate, write_report
-    from blsm.learn.fit import BLSMFittable, FitConfig
-    from blsm.learn.registrations import load_registration_set, spread_over_subjects
-    from blsm.learn.smpl_reimpl import SMPLReimplFittable, SMPLTrainConfig, train_smpl_reimpl
+    from blsm.learn.evaluation.evaluate import EvalConfig, evaluate, write_report
+    from blsm.learn.evaluation.fit import BLSMFittable, FitConfig
+    from blsm.learn.evaluation.smpl_reimpl import SMPLReimplFittable, SMPLTrainConfig, train_smpl_reimpl
+    from blsm.learn.registration.registrations import load_registration_set, spread_over_subjects
 
     e = cfg.evaluation
     t0 = time.time()

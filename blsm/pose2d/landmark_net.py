@@ -6,9 +6,9 @@ thesis (Sec. 6.3) detects 2D keypoints in renders of the scan and triangulates (
 detectors (OpenPose, DensePose) were trained on labelled photographs, which we do not have. What we
 do have is the truth of every stand-in scan: each landmark's surface point. :class:`LandmarkNet` is a
 heatmap network (as SimpleBaselines / HRNet: one Gaussian heatmap per landmark, mean-squared error)
-trained on the multi-view renders of training scans (:mod:`blsm.learn.landmark_detector`), and
+trained on the multi-view renders of training scans (:mod:`blsm.learn.markerless.landmark_detector`), and
 :class:`LandmarkDetector` runs it on the views of a new scan; the detections are triangulated as
-MediaPipe's are (:func:`blsm.learn.markerless.triangulate_all`) and fill the scan's landmarks.
+MediaPipe's are (:func:`blsm.learn.markerless.keypoints.triangulate_all`) and fill the scan's landmarks.
 
 Network (small, from scratch; the renders are a narrow domain): a residual U-Net. Encoder at strides
 2-32 (channels 24, 32, 64, 128, 192), decoder back to stride 4 with skip connections, one 1x1 head

@@ -1,6 +1,6 @@
 """MediaPipe Pose (BlazePose GHUM 3D, "full" model) as a stand-alone 2D pose script.
 
-Used by markerless scan keypoints (:mod:`blsm.pose2d.detectors`, :mod:`blsm.learn.markerless`) and
+Used by markerless scan keypoints (:mod:`blsm.pose2d.detectors`, :mod:`blsm.learn.markerless.keypoints`) and
 as the reference estimator of ``recovery transfer`` (:mod:`recovery.eval.transfer`). Run as a script
 in an environment with ``mediapipe==0.10.9`` (``scripts/setup_reference.sh`` makes one; MediaPipe
 pins its own protobuf and OpenCV, so it stays out of the project's environment)::

@@ -5,11 +5,11 @@ codes are optimised together,
 
     argmin_{D, z}  sum_n mean_i || V_D^n,i - D(z^n)_i ||  +  code_prior * ||z^n||^2,
 
-on the T-pose residuals V_D^n of the linear shape space (:mod:`blsm.learn.train` step 4: the
+on the T-pose residuals V_D^n of the linear shape space (:mod:`blsm.learn.training.train` step 4: the
 rest-pose registrations un-skinned, minus the mean template and the bone correctives). The data term
 is Eq. 17's per-vertex Euclidean distance (in mm, averaged over vertices); the code prior is
 DeepSDF's zero-mean Gaussian on the codes, which keeps the latent space compact so that a code can be
-searched for a new body (:func:`fit_codes`; the staged fit of :mod:`blsm.learn.fit` does the same
+searched for a new body (:func:`fit_codes`; the staged fit of :mod:`blsm.learn.evaluation.fit` does the same
 with pose and bones free). Optimiser as in the paper (Sec. 5): Adam, learning rate 1e-3 and weight
 decay 5e-5 for the network, 0.1 and 1e-7 for the codes (DeepSDF's initial codes: N(0, 0.01^2)), both
 rates x0.99 after each epoch.

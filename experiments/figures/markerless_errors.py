@@ -26,8 +26,8 @@ def main() -> None:
     args = ap.parse_args()
     import blsm
     from blsm.camera import auto_camera
-    from blsm.learn.registrations import load_registration
-    from blsm.learn.scans import load_scan
+    from blsm.learn.registration.registrations import load_registration
+    from blsm.learn.scans.format import load_scan
     from blsm.render import render_meshes, save_png
 
     faces = blsm.load().faces.numpy()

@@ -35,13 +35,13 @@ PLAIN_SUBJECTS = 10  # rest + one pose each: 20 scans; the artefact groups use t
 
 
 def make_scans() -> None:
-    from blsm.learn.population import Artefacts, make_population
+    from blsm.learn.scans.population import Artefacts, make_population
 
     for name, kw in GROUPS.items():
         n = PLAIN_SUBJECTS if name == "plain" else 3
         make_population(OUT / name, n, n, 1, seed=SEED, test_fraction=1.0, overwrite=True, artefacts=Artefacts(**kw))
     # A scan without a person: the stool and floor markers of a scan, alone.
-    from blsm.learn.scans import Scan, load_scan, save_scan
+    from blsm.learn.scans.format import Scan, load_scan, save_scan
 
     s = load_scan(OUT / "all_props" / "scans" / "s00000_01.npz")
     start = s.meta["props"]["stool"][0]
@@ -57,9 +57,9 @@ def body_rotation(scan) -> np.ndarray:
 
 
 def measure_group(name: str, model, cfg, sheets: list[str]) -> list[dict]:
-    from blsm.learn import markerless as M
-    from blsm.learn.population import read_population
-    from blsm.learn.scans import load_scan
+    from blsm.learn.markerless import keypoints as M
+    from blsm.learn.scans.format import load_scan
+    from blsm.learn.scans.population import read_population
     from blsm.pose2d.detectors import MediaPipeDetector
 
     folder = OUT / name
@@ -143,7 +143,7 @@ def no_person_check() -> dict:
 def save_figure(picks: list, path: Path, views: list[int]) -> None:
     from PIL import Image
 
-    from blsm.learn.markerless import contact_sheet
+    from blsm.learn.markerless.keypoints import contact_sheet
 
     tiles = []
     for images, res in picks:
@@ -166,7 +166,7 @@ def main() -> int:
     if args.make:
         make_scans()
     import blsm
-    from blsm.learn import markerless as M
+    from blsm.learn.markerless import keypoints as M
 
     model = blsm.load()
     cfg = M.MarkerlessConfig()

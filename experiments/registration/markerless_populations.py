@@ -16,7 +16,7 @@ Writes, each once (an existing folder is kept):
   measurements name results by file name, and every population starts at ``s00000_00``).
 
 All textured, default scanner artefacts, split ``test``. Every draw derives from (seed, subject), so
-the folders are the same on any machine (``blsm.learn.population.make_population``).
+the folders are the same on any machine (``blsm.learn.scans.population.make_population``).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("out/register4d"))
     ap.add_argument("--only", nargs="*", choices=sorted(POPULATIONS), default=None)
     args = ap.parse_args()
-    from blsm.learn.population import Artefacts, make_population
+    from blsm.learn.scans.population import Artefacts, make_population
 
     for name, (n, posed, seed, art) in POPULATIONS.items():
         if args.only and name not in args.only:

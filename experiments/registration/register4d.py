@@ -5,12 +5,12 @@ and single held-out scans, against the true correspondence (``gt_points``). See 
     python experiments/registration/register4d.py scans SCAN.npz [...] --keypoints truth --out out/register4d
 
 ``--keypoints truth``: the model's keypoints of the true body plus detector-like errors
-(:func:`blsm.learn.sequence_scans.perturb_keypoints`: 2 cm noise, 10 % dropouts, a left/right swap in
+(:func:`blsm.learn.markerless.sequence_scans.perturb_keypoints`: 2 cm noise, 10 % dropouts, a left/right swap in
 10 % of the frames); ``landmarks``: the scans' 74 landmarks (5 mm noise) as keypoints (A_lm);
-``mediapipe``: ``blsm.learn.markerless.scan_keypoints`` (rendered views, MediaPipe, Eq. 6.3);
-``baseline``: the landmark registration (:func:`blsm.learn.register.register`, Eqs. 5.13-5.25);
+``mediapipe``: ``blsm.learn.markerless.keypoints.scan_keypoints`` (rendered views, MediaPipe, Eq. 6.3);
+``baseline``: the landmark registration (:func:`blsm.learn.registration.register.register`, Eqs. 5.13-5.25);
 ``detector``: the same, with the landmarks located by the learnt detector on the renders
-(:mod:`blsm.learn.markerless_landmarks`, ``--detector FILE``); ``exact``: the ceiling of keypoint
+(:mod:`blsm.learn.markerless.landmarks`, ``--detector FILE``); ``exact``: the ceiling of keypoint
 registration, the model's keypoints of the true body with no noise, dropout or swap (confidence 1),
 plus with ``--extra`` the exact positions of more points: ``face`` (10 face landmarks), ``hands``
 (12 hand landmarks), ``spine`` (the pelvis, spine and neck joints), ``torso`` (14 torso landmarks),
@@ -34,13 +34,13 @@ import numpy as np
 import torch
 
 import blsm
-from blsm.learn.keypoint_fit import KeypointFitConfig
-from blsm.learn.landmark_fit import default_selection
-from blsm.learn.register import KeypointTargets, register_keypoints, scan_data
-from blsm.learn.register_config import DEFAULT_CONFIG, load_config
-from blsm.learn.registrations import save_registration
-from blsm.learn.scans import load_scan
-from blsm.learn.sequence_scans import make_sequence, perturb_keypoints, truth_keypoints
+from blsm.learn.markerless.sequence_scans import make_sequence, perturb_keypoints, truth_keypoints
+from blsm.learn.registration.keypoint_fit import KeypointFitConfig
+from blsm.learn.registration.landmark_fit import default_selection
+from blsm.learn.registration.register import KeypointTargets, register_keypoints, scan_data
+from blsm.learn.registration.register_config import DEFAULT_CONFIG, load_config
+from blsm.learn.registration.registrations import save_registration
+from blsm.learn.scans.format import load_scan
 
 EXTRA = {  # --keypoints exact --extra: landmark names of blsm/data/landmarks.yaml, or "+joint" model keypoints
     "face": ["pronasale", "sellion", "menton", "tragion_l", "tragion_r", "infraorbitale_l", "infraorbitale_r",
@@ -55,8 +55,8 @@ EXTRA = {  # --keypoints exact --extra: landmark names of blsm/data/landmarks.ya
 def exact_targets(model, scans, extra: list[str]):
     """The ceiling: exact model keypoints of the true body (MediaPipe's 21 names, plus ``+joint``
     extras) and exact landmark points (A_lm of ``gt_points``), confidence 1; their A_kp."""
-    from blsm.learn.keypoint_fit import KeypointSet
-    from blsm.learn.markerless import BLSM_NAMES
+    from blsm.learn.markerless.keypoints import BLSM_NAMES
+    from blsm.learn.registration.keypoint_fit import KeypointSet
 
     names = [*BLSM_NAMES, *(e[1:] for e in extra if e.startswith("+"))]
     marks = [e for e in extra if not e.startswith("+")]
@@ -95,7 +95,7 @@ def targets_of(model, scans, how: str, seed: int, noise: float, cache: Path | No
             p, c = perturb_keypoints(pts, names, rng, noise=noise)
             out.append(KeypointTargets(names, p, c, {"stand_in": f"truth + {noise * 1000:.0f} mm noise"}))
         return out, None
-    from blsm.learn.markerless import scan_keypoints
+    from blsm.learn.markerless.keypoints import scan_keypoints
 
     out = []
     for s in scans:
@@ -177,8 +177,8 @@ def errors(regs, scans) -> dict:
 
 def detected_landmarks(scans, weights):
     """The scans with their landmarks from the learnt detector, and the detection's errors."""
-    from blsm.learn.markerless_landmarks import detect_landmarks, with_landmarks
-    from blsm.learn.scans import landmark_points
+    from blsm.learn.markerless.landmarks import detect_landmarks, with_landmarks
+    from blsm.learn.scans.format import landmark_points
     from blsm.pose2d.landmark_net import LandmarkDetector
 
     det = LandmarkDetector(weights)
@@ -225,7 +225,7 @@ def run(model, scans, how, sequence, args, tag):
         scans = [replace(s, landmarks=(s.landmarks + rng.normal(0, args.landmark_noise, s.landmarks.shape)).astype(np.float32))
                  for s in scans]
     if how == "baseline":  # the landmark registration (Eqs. 5.13-5.25), batches of 4
-        from blsm.learn.register import register
+        from blsm.learn.registration.register import register
 
         regs = [r for i in range(0, len(scans), 4) for r in register(model, scans[i:i + 4], cfg)]
     else:  # sequence: one subject; else frame by frame (each its own subject, no smoothing; batched)
@@ -234,8 +234,8 @@ def run(model, scans, how, sequence, args, tag):
             targets, kps = exact_targets(model, scans, [n for e in args.extra.split(",") if e for n in EXTRA[e]])
         else:
             targets, sel = targets_of(model, scans, how, args.seed, args.noise, args.keypoint_cache)
-            if args.regressor is not None:  # A_kp learnt for the detector (blsm.learn.keypoint_regressor)
-                from blsm.learn.keypoint_regressor import load_keypoint_regressor
+            if args.regressor is not None:  # A_kp learnt for the detector (blsm.learn.markerless.keypoint_regressor)
+                from blsm.learn.markerless.keypoint_regressor import load_keypoint_regressor
 
                 kps = load_keypoint_regressor(args.regressor, model.template.shape[0])
         kcfg = KeypointFitConfig(**_overrides(args.fit, KeypointFitConfig))

@@ -14,7 +14,7 @@ pipeline has. The packaged rig and ``blsm train`` never use it.
 
 Held-out scans of a ``blsm scans`` / ``blsm train`` population (the rest scan of every
 ``--every``-th held-out subject and ``--posed`` posed scans) are registered with the packaged rig
-(``blsm.learn.register``, stage 1 + stage 2) under several conditions, and the error against the
+(``blsm.learn.registration.register``, stage 1 + stage 2) under several conditions, and the error against the
 ground truth (every template vertex on the clean Anny body) is split into its part along the true
 surface normal and its part across the surface (sliding):
 
@@ -46,8 +46,8 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 import blsm  # noqa: E402
-from blsm.learn import register as R  # noqa: E402
-from blsm.learn.scans import Scan, load_scan  # noqa: E402
+from blsm.learn.registration import register as R  # noqa: E402
+from blsm.learn.scans.format import Scan, load_scan  # noqa: E402
 from blsm.mesh import vertex_normals  # noqa: E402
 from blsm.skeleton import BONE_PARTS, PART_NAMES  # noqa: E402
 
@@ -141,7 +141,7 @@ def summary(rows: list[dict]) -> dict:
 def identity_detail(model, scans: list[Scan]) -> dict:
     """How far each rest subject's Anny local changes move its true points (mm)."""
     from blsm.build_anny import barycentric_interpolate
-    from blsm.learn.population import anny_rig, rest_bodies
+    from blsm.learn.scans.population import anny_rig, rest_bodies
 
     rest = [s for s in scans if int(s.meta.get("pose", 0)) == 0]
     rig = anny_rig(model)
@@ -160,8 +160,8 @@ def identity_detail(model, scans: list[Scan]) -> dict:
 def mean_body(model, selection, cfg: R.RegisterConfig) -> dict:
     """Register a clean scan of Anny's mean body (exact landmarks)."""
     from blsm.build_anny import anny_mean_body, barycentric_interpolate
-    from blsm.learn.population import anny_model, anny_rig
-    from blsm.learn.scans import landmark_names, landmark_points
+    from blsm.learn.scans.format import landmark_names, landmark_points
+    from blsm.learn.scans.population import anny_model, anny_rig
 
     rig = anny_rig(model)
     mean = anny_mean_body(anny_model())
@@ -177,8 +177,8 @@ def mean_body(model, selection, cfg: R.RegisterConfig) -> dict:
 def oracle_floor(oracle, scans: list[Scan]) -> list[float]:
     """Mean error (mm) of each scan's true vertices fitted by the oracle with all its coefficients:
     the staged fit of Sec. 5.5.2 that ``blsm evaluate --targets ground-truth`` uses."""
-    from blsm.learn.evaluate import EvalConfig, fit_errors
-    from blsm.learn.fit import BLSMFittable
+    from blsm.learn.evaluation.evaluate import EvalConfig, fit_errors
+    from blsm.learn.evaluation.fit import BLSMFittable
 
     fittable = BLSMFittable(oracle)
     gt = torch.as_tensor(np.stack([np.asarray(s.gt_points, np.float64) for s in scans]), dtype=oracle.template.dtype)

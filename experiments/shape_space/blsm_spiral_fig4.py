@@ -5,11 +5,11 @@ registrations against the number of coefficients (docs/blsm_spiral.md).
     python experiments/shape_space/blsm_spiral_fig4.py run --regs R --work W --device cuda  # learn, decoders, SMPL-reimpl, fits
     python experiments/shape_space/blsm_spiral_fig4.py report --work W --out docs/figures/blsm_spiral_fig4  # .png, .json; prints the tables
 
-``run`` learns BLSM-linear once (``blsm learn``'s :func:`blsm.learn.train.learn_model`, the default
+``run`` learns BLSM-linear once (``blsm learn``'s :func:`blsm.learn.training.train.learn_model`, the default
 training config with 32 shape components) and keeps the T-pose residuals it learns the shape space
 from; trains one spiral auto-decoder per latent size on those residuals (BLSM-spiral models share
 everything else with BLSM-linear); trains SMPL-reimpl (``blsm train-smpl``'s
-:func:`blsm.learn.smpl_reimpl.train_smpl_reimpl`) on the same training split; then fits every model to
+:func:`blsm.learn.evaluation.smpl_reimpl.train_smpl_reimpl`) on the same training split; then fits every model to
 the rest-pose registration of every held-out subject (the staged fit plus Levenberg-Marquardt of
 ``blsm evaluate``). BLSM-spiral with latent size L is fitted with its 10 bone and L latent coefficients
 free, so it is plotted at k = 10 + L, counted as BLSM-linear counts its bone and shape coefficients.
@@ -36,8 +36,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import blsm  # noqa: E402
 from blsm import io  # noqa: E402
-from blsm.learn.evaluate import EvalConfig, error_stats, fit_errors, shape_curve  # noqa: E402
-from blsm.learn.fit import BLSMFittable, FitConfig  # noqa: E402
+from blsm.learn.evaluation.evaluate import EvalConfig, error_stats, fit_errors, shape_curve  # noqa: E402
+from blsm.learn.evaluation.fit import BLSMFittable, FitConfig  # noqa: E402
 from blsm.spiral.autodecoder import SpiralConfig, train_auto_decoder  # noqa: E402
 from blsm.spiral.hierarchy import MeshOperators  # noqa: E402
 from blsm.spiral.sampling import Level  # noqa: E402
@@ -117,8 +117,8 @@ def first_per_subject(regs, limit: int = 0):  # noqa: ANN001, ANN201
 
 
 def learn_linear(args: argparse.Namespace, res: Results) -> tuple[io.ModelData, torch.Tensor, list[str]]:
-    from blsm.learn.registrations import load_registrations
-    from blsm.learn.train import is_rest_pose, learn_model, load_train_config
+    from blsm.learn.registration.registrations import load_registrations
+    from blsm.learn.training.train import is_rest_pose, learn_model, load_train_config
 
     cfg = load_train_config(args.config)
     cfg = replace(cfg, device=args.learn_device or args.device, shape=replace(cfg.shape, num_coeffs=args.shape_coeffs))
@@ -183,7 +183,7 @@ def start_smpl(args: argparse.Namespace, src: Path):  # noqa: ANN201
 
 def finish_smpl(args: argparse.Namespace, job, linear, res: Results):  # noqa: ANN001, ANN201
     """Wait for :func:`start_smpl`; the model on the linear model's device (None if it failed)."""
-    from blsm.learn.smpl_reimpl import load_smpl_reimpl
+    from blsm.learn.evaluation.smpl_reimpl import load_smpl_reimpl
 
     proc, t0 = job
     out, _ = proc.communicate()
@@ -196,7 +196,7 @@ def finish_smpl(args: argparse.Namespace, job, linear, res: Results):  # noqa: A
 
 def smpl_curve(args: argparse.Namespace, job, linear, res: Results, curve, test, src: Path) -> None:  # noqa: ANN001
     """SMPL-reimpl's held-out curve, once :func:`start_smpl` is done; on the CPU if the device fails."""
-    from blsm.learn.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
+    from blsm.learn.evaluation.smpl_reimpl import SMPLReimplFittable, load_smpl_reimpl
 
     smpl = finish_smpl(args, job, linear, res)
     if smpl is None:
@@ -212,7 +212,7 @@ def smpl_curve(args: argparse.Namespace, job, linear, res: Results, curve, test,
 
 
 def cmd_run(args: argparse.Namespace) -> None:
-    from blsm.learn.registrations import load_registration_set
+    from blsm.learn.registration.registrations import load_registration_set
 
     args.work.mkdir(parents=True, exist_ok=True)
     res = Results(args.work / "fig4.json")
@@ -276,7 +276,7 @@ def cmd_run(args: argparse.Namespace) -> None:
 
 
 def cmd_report(args: argparse.Namespace) -> None:
-    from blsm.learn.evaluate import line_plot
+    from blsm.learn.evaluation.evaluate import line_plot
 
     d = json.loads((args.work / "fig4.json").read_text())
     kb = d["num_bone_coeffs"]

@@ -7,7 +7,7 @@
 Makes the reparameterised models (``--schemes loop,midpoint``: the packaged template subdivided
 once, 7002 -> 28002 vertices), brings the held-out rest-pose registrations (and the true bodies
 under them, the scans' ``gt_points``) to the T-pose frame as ``blsm learn`` does
-(:func:`blsm.learn.reparam_eval.tpose_instances`), and measures compactness, generalisation and
+(:func:`blsm.learn.reparam.evaluate.tpose_instances`), and measures compactness, generalisation and
 specificity (Figs. 3.2-3.4) of the original shape space, of the new model's (``mapped``: ``W P_s``)
 and of Eq. 3.5's (``eq35``), for two readings of the held-out set in the new topology:
 
@@ -38,8 +38,8 @@ KS = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64)
 
 def load_held_out(reg_dir: Path, population: Path, max_n: int):
     """Held-out rest-pose registrations: (files, vertices (N, V, 3), gt (N, V, 3), init dict)."""
-    from blsm.learn.registrations import load_registration
-    from blsm.learn.train import is_rest_pose
+    from blsm.learn.registration.registrations import load_registration
+    from blsm.learn.training.train import is_rest_pose
 
     index = json.loads((population / "index.json").read_text())
     split = {s["id"]: s["split"] for s in index["subjects"]}
@@ -63,7 +63,7 @@ def load_held_out(reg_dir: Path, population: Path, max_n: int):
 def curves(space, x, ks, samples, device, resample=None):
     """The four curves of ``space`` on instances ``x``; with ``resample`` (W') only generalisation and
     specificity, measured at the new topology's vertices."""
-    from blsm.learn.reparam_eval import compactness, data_compactness, generalisation, specificity
+    from blsm.learn.reparam.evaluate import compactness, data_compactness, generalisation, specificity
 
     ks = [k for k in ks if k <= len(space.variances)]
     out = {"ks": ks, "generalisation_mm": generalisation(space, x, ks, resample).tolist(),
@@ -94,9 +94,9 @@ def main() -> int:
 
     import blsm
     from blsm import io
-    from blsm.learn.reparam import apply_rows, shape_space_eq35, shape_space_pca, sparse_rows
-    from blsm.learn.reparam_eval import posed_check, tpose_instances
-    from blsm.learn.reparam_model import (
+    from blsm.learn.reparam.evaluate import posed_check, tpose_instances
+    from blsm.learn.reparam.mapping import apply_rows, shape_space_eq35, shape_space_pca, sparse_rows
+    from blsm.learn.reparam.model import (
         ReparamConfig,
         read_correspondence,
         reparameterise,

@@ -10,7 +10,7 @@ import torch
 @pytest.fixture(scope="session")
 def selection(model):
     """The packaged landmark table (blsm/data/landmarks.yaml) as a landmark selection."""
-    from blsm.learn.landmark_fit import default_selection
+    from blsm.learn.registration.landmark_fit import default_selection
 
     return default_selection(model)
 
@@ -29,7 +29,7 @@ def coloured_body(model):
     """``coloured_body(seed, yaw)``: a posed body of the packaged model (random angles within 0.15 rad
     of rest, turned by ``yaw`` about the vertical) as a scan with random vertex colours and exact
     ground truth."""
-    from blsm.learn.scans import Scan
+    from blsm.learn.scans.format import Scan
 
     def make(seed: int, yaw: float) -> Scan:
         gen = torch.Generator().manual_seed(seed)

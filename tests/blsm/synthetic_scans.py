@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from blsm.learn.landmark_fit import LandmarkSelection
+from blsm.learn.registration.landmark_fit import LandmarkSelection
 
 
 def fps_vertices(template: torch.Tensor, n: int) -> np.ndarray:

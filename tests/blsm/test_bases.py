@@ -1,4 +1,4 @@
-"""Tests for blsm/learn/bases.py: the pure math of learning (bone and shape PCA, Eq. 5.27, Eq. 5.31)."""
+"""Tests for blsm/learn/training/bases.py: the pure math of learning (bone and shape PCA, Eq. 5.27, Eq. 5.31)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,13 @@ import pytest
 import torch
 
 import blsm
-from blsm.learn.bases import blend_weights, bone_mirror_index, bone_pca, solve_correctives, weight_support
+from blsm.learn.training.bases import (
+    blend_weights,
+    bone_mirror_index,
+    bone_pca,
+    solve_correctives,
+    weight_support,
+)
 
 
 def test_bone_pca_two_components():

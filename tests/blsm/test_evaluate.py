@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/evaluate.py: held-out errors, tables and plots (thesis Sec. 5.5.2), and ``blsm evaluate``."""
+"""Tests of blsm/learn/evaluation/evaluate.py: held-out errors, tables and plots (thesis Sec. 5.5.2), and ``blsm evaluate``."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 
 from blsm.cli import main as blsm_main
 from blsm.io import atomic_write
-from blsm.learn.evaluate import (
+from blsm.learn.evaluation.evaluate import (
     EvalConfig,
     cumulative_auc,
     error_stats,
@@ -18,9 +18,9 @@ from blsm.learn.evaluate import (
     line_plot,
     write_report,
 )
-from blsm.learn.fit import BLSMFittable, FitConfig
-from blsm.learn.registrations import load_registration_set, spread_over_subjects
-from blsm.learn.smpl_reimpl import SMPLReimpl, SMPLReimplFittable, ring_regressor
+from blsm.learn.evaluation.fit import BLSMFittable, FitConfig
+from blsm.learn.evaluation.smpl_reimpl import SMPLReimpl, SMPLReimplFittable, ring_regressor
+from blsm.learn.registration.registrations import load_registration_set, spread_over_subjects
 
 
 def main(argv: list[str]) -> int:

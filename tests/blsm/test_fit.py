@@ -1,11 +1,11 @@
-"""Tests of blsm/learn/fit.py: staged fitting (thesis Sec. 5.5.2)."""
+"""Tests of blsm/learn/evaluation/fit.py: staged fitting (thesis Sec. 5.5.2)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from blsm.learn.fit import BLSMFittable, FitConfig, Fittable, initial_params, kabsch, staged_fit
+from blsm.learn.evaluation.fit import BLSMFittable, FitConfig, Fittable, initial_params, kabsch, staged_fit
 from blsm.mocap.prior import load_prior
 
 PRIOR = "blsm/data/pose_prior_cmu.npz"

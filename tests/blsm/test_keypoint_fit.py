@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/keypoint_fit.py: registration from 3D keypoints (thesis Eqs. 6.4-6.6)."""
+"""Tests of blsm/learn/registration/keypoint_fit.py: registration from 3D keypoints (thesis Eqs. 6.4-6.6)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from blsm.learn.keypoint_fit import (
+from blsm.learn.registration.keypoint_fit import (
     KeypointFitConfig,
     KeypointSet,
     fit_keypoints,
@@ -152,7 +152,7 @@ def test_smoothing_follows_frame_spacing():
 def test_frame_times():
     """Times of a sequence's frames: the fps setting, else the scans' meta (time; frame index and fps),
     else unknown (None: the reference 15 fps)."""
-    from blsm.learn.keypoint_fit import frame_times
+    from blsm.learn.registration.keypoint_fit import frame_times
 
     metas = [{"id": f"frame_{k:04d}", "pose": k, "fps": 7.5} for k in range(3)]  # make_sequence's meta
     t, src = frame_times(metas)
@@ -171,7 +171,7 @@ def test_frame_times():
 
 def test_outlier_frames():
     """A frame is reported when its keypoint error is over twice its sequence's median and over 10 mm."""
-    from blsm.learn.keypoint_fit import outlier_frames
+    from blsm.learn.registration.keypoint_fit import outlier_frames
 
     zero3 = torch.zeros(3, dtype=torch.long)
     assert outlier_frames(torch.tensor([0.0062, 0.035, 0.0124]), zero3) == [1]  # issue 53's frames
@@ -251,9 +251,9 @@ def test_bad_input(model, tmp_path):
 def test_search_hands_fine_grid_around_the_fit(model):
     """The first search picks HAND_GRID's nearest combination; ``around=True`` steps HAND_GRID_FINE from
     the fitted angles and so reaches angles between the coarse values; a fit already right stays."""
-    from blsm.learn.end_search import HAND_GRID, HAND_GRID_FINE, search_hands
-    from blsm.learn.keypoint_fit import KeypointFit
     from blsm.learn.posing import pose
+    from blsm.learn.registration.end_search import HAND_GRID, HAND_GRID_FINE, search_hands
+    from blsm.learn.registration.keypoint_fit import KeypointFit
 
     dtype = model.template.dtype
     names = [k.format(s="l") for k in HAND_GRID]
@@ -286,9 +286,9 @@ def test_search_hands_fine_grid_around_the_fit(model):
 
 def test_search_feet_around_the_fit(model):
     """``search_feet`` moves a foot that the keypoint fit left 0.3 rad off back onto the scan."""
-    from blsm.learn.end_search import FOOT_GRID_FINE, search_feet
-    from blsm.learn.keypoint_fit import KeypointFit
     from blsm.learn.posing import pose
+    from blsm.learn.registration.end_search import FOOT_GRID_FINE, search_feet
+    from blsm.learn.registration.keypoint_fit import KeypointFit
 
     dtype = model.template.dtype
     idx = [model.dof_names.index(k.format(s="r")) for k in FOOT_GRID_FINE]

@@ -1,11 +1,11 @@
-"""Tests of blsm/learn/keypoint_regressor.py: A_kp of Eq. 6.4 learnt for a detector."""
+"""Tests of blsm/learn/markerless/keypoint_regressor.py: A_kp of Eq. 6.4 learnt for a detector."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from blsm.learn.keypoint_regressor import (
+from blsm.learn.markerless.keypoint_regressor import (
     fit_keypoint_regressor,
     load_keypoint_regressor,
     save_keypoint_regressor,

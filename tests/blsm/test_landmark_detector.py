@@ -1,5 +1,5 @@
-"""The learnt landmark detector (blsm.pose2d.landmark_net), its training (blsm.learn.landmark_detector)
-and markerless landmarks (blsm.learn.markerless_landmarks), on tiny renders."""
+"""The learnt landmark detector (blsm.pose2d.landmark_net), its training (blsm.learn.markerless.landmark_detector)
+and markerless landmarks (blsm.learn.markerless.landmarks), on tiny renders."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from blsm.learn.markerless import MarkerlessConfig
-from blsm.learn.markerless_landmarks import LandmarkDetectionConfig, detect_landmarks, with_landmarks
-from blsm.learn.multiview import ViewConfig
-from blsm.learn.scans import Scan, landmark_names, landmark_points, save_scan
+from blsm.learn.markerless.keypoints import MarkerlessConfig
+from blsm.learn.markerless.landmarks import LandmarkDetectionConfig, detect_landmarks, with_landmarks
+from blsm.learn.markerless.multiview import ViewConfig
+from blsm.learn.scans.format import Scan, landmark_names, landmark_points, save_scan
 from blsm.pose2d import landmark_net as N
 
 
@@ -89,7 +89,7 @@ def test_projected_landmarks_triangulate_and_fill_the_scan(model, body):
 
 
 def test_training_learns_and_the_file_round_trips(tmp_path, model, body):
-    from blsm.learn import landmark_detector as T
+    from blsm.learn.markerless import landmark_detector as T
 
     for i, angle in enumerate((0.0, 1.5)):  # two "population" scans
         c, s = np.cos(angle), np.sin(angle)
@@ -158,7 +158,7 @@ def test_bad_detector_file_and_nobody_are_one_line_errors(tmp_path, capsys):
 def test_cli_registers_from_detected_landmarks(tmp_path, model, body, monkeypatch):
     """`blsm register --detector landmarks` end to end, the detector replaced by exact projections."""
     from blsm import cli
-    from blsm.learn.registrations import load_registration
+    from blsm.learn.registration.registrations import load_registration
 
     truth = landmark_points(torch.as_tensor(body.gt_points)).numpy()
     monkeypatch.setattr(N, "LandmarkDetector", lambda *a, **k: _Projecting(truth))

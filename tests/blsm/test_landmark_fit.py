@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/landmark_fit.py: the landmark fit of the registration (thesis Eq. 5.13)."""
+"""Tests of blsm/learn/registration/landmark_fit.py: the landmark fit of the registration (thesis Eq. 5.13)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,15 @@ import pytest
 import torch
 from synthetic_scans import fps_vertices
 
-from blsm.learn.landmark_fit import LandmarkSelection, fit_landmarks, pose_angles, read_landmark_definitions
 from blsm.learn.posing import pose
-from blsm.learn.register import st1_vertices
-from blsm.learn.register_config import RegisterConfig
+from blsm.learn.registration.landmark_fit import (
+    LandmarkSelection,
+    fit_landmarks,
+    pose_angles,
+    read_landmark_definitions,
+)
+from blsm.learn.registration.register import st1_vertices
+from blsm.learn.registration.register_config import RegisterConfig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from blsm.learn import landmarks as L
-from blsm.learn.scans import Scan, landmark_names, landmark_points, load_scan, save_scan, template_landmarks
+from blsm.learn.scans import landmarks as L
+from blsm.learn.scans.format import (
+    Scan,
+    landmark_names,
+    landmark_points,
+    load_scan,
+    save_scan,
+    template_landmarks,
+)
 
 
 @pytest.fixture(scope="module")
@@ -196,6 +203,6 @@ def test_names_known():
 
 
 def test_landmarks_command_rewrites_the_packaged_table(tmp_path):
-    """``python -m blsm.learn.landmarks --out FILE`` writes the packaged table again, unchanged."""
+    """``python -m blsm.learn.scans.landmarks --out FILE`` writes the packaged table again, unchanged."""
     assert L.main(["--out", str(tmp_path / "lm.yaml")]) == 0
     assert (tmp_path / "lm.yaml").read_text() == L.LANDMARKS_YAML.read_text()

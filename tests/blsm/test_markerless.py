@@ -1,4 +1,4 @@
-"""Markerless scan keypoints (blsm.learn.markerless, multiview, pose2d) and textured scans, no MediaPipe."""
+"""Markerless scan keypoints (blsm.learn.markerless.keypoints, multiview, pose2d) and textured scans, no MediaPipe."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from blsm.camera import look_at_camera
-from blsm.learn import markerless as M
-from blsm.learn.multiview import ViewConfig, view_boxes, view_cameras
-from blsm.learn.scans import Scan, load_scan, save_scan
+from blsm.learn.markerless import keypoints as M
+from blsm.learn.markerless.multiview import ViewConfig, view_boxes, view_cameras
+from blsm.learn.scans.format import Scan, load_scan, save_scan
 from blsm.pose2d.detectors import MEDIAPIPE_MIRROR, MEDIAPIPE_NAMES, MediaPipeDetector, ProjectedDetector
 
 
@@ -142,7 +142,7 @@ def test_mediapipe_detector_without_environment(tmp_path, body, capsys, monkeypa
 
 
 def test_stool_and_floor_markers_keep_clear_of_the_body():
-    from blsm.learn import scan_paint
+    from blsm.learn.scans import scan_paint
 
     rng = np.random.default_rng(0)
     body = rng.uniform([-0.2, 0.0, -0.15], [0.2, 1.7, 0.15], size=(3000, 3))
@@ -163,7 +163,7 @@ def test_stool_and_floor_markers_keep_clear_of_the_body():
 @pytest.mark.slow
 def test_population_colours_and_artefacts(tmp_path, model):
     """Colours and props come from their own random streams: the body arrays are unchanged."""
-    from blsm.learn.population import Artefacts, make_population
+    from blsm.learn.scans.population import Artefacts, make_population
 
     make_population(tmp_path / "a", 1, 1, 1, seed=5, model=None, colors=False)
     make_population(tmp_path / "b", 1, 1, 1, seed=5, artefacts=Artefacts(stool=True, floor_markers=3))

@@ -120,7 +120,7 @@ def test_config_errors_are_one_line_naming_file_and_key(tmp_path, capsys):
 
 
 def test_a_malformed_scan_stops_the_run_before_any_registration(tmp_path, capsys):
-    from blsm.learn.population import make_population
+    from blsm.learn.scans.population import make_population
 
     pop = tmp_path / "pop"
     make_population(pop, 3, seed=2, test_fraction=0.0)

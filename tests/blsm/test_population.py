@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from blsm.learn import population as P
-from blsm.learn.scans import landmark_points, load_scan
+from blsm.learn.scans import population as P
+from blsm.learn.scans.format import landmark_points, load_scan
 
 pytest.importorskip("anny")
 

@@ -1,5 +1,5 @@
-"""Tests of blsm/learn/register.py (thesis Sec. 5.4.1, Eqs. 5.13-5.25): the whole registration,
-its settings (blsm/learn/register_config.py) and ``blsm register`` (blsm/learn/cli.py)."""
+"""Tests of blsm/learn/registration/register.py (thesis Sec. 5.4.1, Eqs. 5.13-5.25): the whole registration,
+its settings (blsm/learn/registration/register_config.py) and ``blsm register`` (blsm/learn/cli.py)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from synthetic_scans import synthetic_scan, write_scan_npz
 
 from blsm.cli import main
 from blsm.learn.posing import pose
-from blsm.learn.register import register
-from blsm.learn.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
-from blsm.learn.registrations import correspondence_error, load_registration
+from blsm.learn.registration.register import register
+from blsm.learn.registration.register_config import DEFAULT_CONFIG, RegisterConfig, load_config
+from blsm.learn.registration.registrations import correspondence_error, load_registration
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -124,8 +124,8 @@ def test_cli(tmp_path, model, gen, selection, capsys):
 def test_population_scan_registers(model, selection, tmp_path):
     """A real Anny population scan (noise, holes, 5 mm landmark noise) against its ground truth."""
     pytest.importorskip("anny")
-    from blsm.learn.population import make_population, read_population
-    from blsm.learn.scans import load_scan
+    from blsm.learn.scans.format import load_scan
+    from blsm.learn.scans.population import make_population, read_population
 
     # The population is made with the packaged rig (its template defines the ground truth).
     make_population(out=tmp_path / "pop", n_subjects=1, posed_subjects=1, poses_per_subject=1, seed=3,

@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/registrations.py: registration files and the two readers."""
+"""Tests of blsm/learn/registration/registrations.py: registration files and the two readers."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from blsm.learn.registrations import (
+from blsm.learn.registration.registrations import (
     Registration,
     correspondence_error,
     load_registration,

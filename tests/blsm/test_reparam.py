@@ -11,15 +11,15 @@ import trimesh
 import blsm
 from blsm import io
 from blsm.cli import main
-from blsm.learn.reparam import (
+from blsm.learn.reparam.evaluate import compactness, generalisation, posed_check, specificity
+from blsm.learn.reparam.mapping import (
     block_matrix,
     closest_point_triangle,
     closest_points,
     mapping_matrix,
     shape_space_eq35,
 )
-from blsm.learn.reparam_eval import compactness, generalisation, posed_check, specificity
-from blsm.learn.reparam_model import read_correspondence, reparameterise, subdivide_template
+from blsm.learn.reparam.model import read_correspondence, reparameterise, subdivide_template
 from blsm.model import DEFAULT_MODEL
 
 
@@ -120,7 +120,7 @@ def test_midpoint_model_loads_and_poses_like_the_original(midpoint, model):
 
 
 def test_shape_space_metrics_on_a_known_space():
-    from blsm.learn.reparam import shape_space_pca
+    from blsm.learn.reparam.mapping import shape_space_pca
 
     rng = np.random.default_rng(4)
     basis = np.zeros((3, 10, 3))

@@ -1,4 +1,4 @@
-"""Tests of the keypoint registration driver (blsm/learn/register.py ``register_keypoints``, thesis
+"""Tests of the keypoint registration driver (blsm/learn/registration/register.py ``register_keypoints``, thesis
 Sec. 6.3), 4D sequences and ``blsm register`` without landmarks (blsm/learn/cli.py)."""
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ import torch
 from synthetic_scans import subdivide, write_scan_npz
 
 from blsm.cli import main
-from blsm.learn.register import KeypointTargets, register_keypoints
-from blsm.learn.register_config import RegisterConfig
-from blsm.learn.registrations import load_registrations
+from blsm.learn.registration.register import KeypointTargets, register_keypoints
+from blsm.learn.registration.register_config import RegisterConfig
+from blsm.learn.registration.registrations import load_registrations
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -45,8 +45,8 @@ class _S:
 
 
 def test_sequence_shares_shape_and_loads(model, selection, tmp_path):
-    from blsm.learn.keypoint_fit import load_keypoint_config
-    from blsm.learn.registrations import save_registration
+    from blsm.learn.registration.keypoint_fit import load_keypoint_config
+    from blsm.learn.registration.registrations import save_registration
 
     (tmp_path / "k.yaml").write_text(TINY_KP)
     kcfg = load_keypoint_config(tmp_path / "k.yaml")
@@ -70,7 +70,7 @@ def test_stage2_iterations_and_keypoints_in_stage2(model, selection, capsys):
     refuses joints."""
     import dataclasses
 
-    from blsm.learn.keypoint_fit import KeypointFitConfig, KeypointSet
+    from blsm.learn.registration.keypoint_fit import KeypointFitConfig, KeypointSet
 
     kcfg = KeypointFitConfig(rigid_iterations=10, trial_iterations=0, iterations=30, surface_rounds=1,
                              surface_iterations=3, scan_samples=2000, model_samples=1000, stage2_iterations=0)
@@ -94,8 +94,8 @@ def test_hand_and_foot_search_again_after_some_rounds(model, selection, capsys, 
     feet) searched around that fit, then the remaining rounds; the total stays ``surface_rounds``."""
     import dataclasses
 
-    import blsm.learn.register as reg
-    from blsm.learn.keypoint_fit import KeypointFitConfig
+    import blsm.learn.registration.register as reg
+    from blsm.learn.registration.keypoint_fit import KeypointFitConfig
 
     calls = []
     real_hands, real_feet = reg.search_hands, reg.search_feet
@@ -148,7 +148,7 @@ def test_cli_sequence_frame_spacing_and_outlier_warning(model, selection, tmp_pa
     seq.mkdir()
     rng = np.random.default_rng(0)
     for k, d in enumerate(_sequence(model, 3, selection)):
-        d["meta"].update(pose=k, fps=7.5)  # as blsm.learn.sequence_scans.make_sequence writes them
+        d["meta"].update(pose=k, fps=7.5)  # as blsm.learn.markerless.sequence_scans.make_sequence writes them
         if k == 1:  # keypoints 5 cm off at random: no body fits them
             d["landmarks"] = d["landmarks"] + rng.normal(0, 0.05, d["landmarks"].shape).astype(np.float32)
         write_scan_npz(_SynthLike(d, selection), seq / f"{d['meta']['id']}.npz")
@@ -197,7 +197,7 @@ def test_cli_markerless_errors(model, selection, tmp_path, capsys, monkeypatch):
     assert len(err) == 1 and "plain.npz" in err[0] and "colours" in err[0]
     # A textured scan where no view finds a person (a detector that never does).
     import blsm.pose2d.detectors as det
-    from blsm.learn.markerless import mediapipe_points
+    from blsm.learn.markerless.keypoints import mediapipe_points
 
     monkeypatch.setattr(det, "MediaPipeDetector",
                         lambda *a, **k: det.ProjectedDetector(mediapipe_points(np.zeros((21, 3))), all_missing=True))

@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/smpl_reimpl.py: the SMPL-type baseline (thesis Sec. 5.5.1)."""
+"""Tests of blsm/learn/evaluation/smpl_reimpl.py: the SMPL-type baseline (thesis Sec. 5.5.1)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from blsm.learn.fit import FitConfig, staged_fit
-from blsm.learn.smpl_reimpl import (
+from blsm.learn.evaluation.fit import FitConfig, staged_fit
+from blsm.learn.evaluation.smpl_reimpl import (
     SMPLReimpl,
     SMPLReimplFittable,
     SMPLTrainConfig,

@@ -81,14 +81,14 @@ def test_bad_options_are_value_errors():
         SpiralConfig(channels=(8, 8))  # 4 levels by default
     with pytest.raises(ValueError, match="latent"):
         SpiralConfig(latent=0)
-    from blsm.learn.train import ShapeConfig
+    from blsm.learn.training.train import ShapeConfig
 
     with pytest.raises(ValueError, match="shape.decoder"):
         ShapeConfig(decoder="conv")
 
 
 def test_bad_option_in_a_config_file_is_an_error(tmp_path):
-    from blsm.learn.train import load_train_config
+    from blsm.learn.training.train import load_train_config
 
     p = tmp_path / "c.yaml"
     p.write_text("train:\n  shape: {decoder: spiral, spiral: {latent: 4, depth: 3}}\n")
@@ -146,7 +146,7 @@ def test_unknown_decoder_kind_names_the_file(spiral_model, tmp_path):
 
 
 def test_spiral_model_is_fittable(spiral_model):
-    from blsm.learn.fit import BLSMFittable, FitConfig, staged_fit
+    from blsm.learn.evaluation.fit import BLSMFittable, FitConfig, staged_fit
 
     model = blsm.load(spiral_model[0])
     fittable = BLSMFittable(model)

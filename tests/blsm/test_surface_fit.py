@@ -1,4 +1,4 @@
-"""Tests of blsm/learn/surface_fit.py: MNN pairs, the energy terms and the free-form refinement
+"""Tests of blsm/learn/registration/surface_fit.py: MNN pairs, the energy terms and the free-form refinement
 (thesis Eqs. 5.14-5.25)."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import pytest
 import torch
 from synthetic_scans import synthetic_scan
 
-from blsm.learn.landmark_fit import fit_landmarks
 from blsm.learn.posing import pose
-from blsm.learn.register import scan_data
-from blsm.learn.register_config import RegisterConfig
-from blsm.learn.surface_fit import (
+from blsm.learn.registration.landmark_fit import fit_landmarks
+from blsm.learn.registration.register import scan_data
+from blsm.learn.registration.register_config import RegisterConfig
+from blsm.learn.registration.surface_fit import (
     Stage2Energy,
     edge_terms,
     mutual_nearest_neighbours,

@@ -1,4 +1,4 @@
-"""Tests for blsm/learn/train.py: learning the model from registrations (Eqs. 5.26-5.31).
+"""Tests for blsm/learn/training/train.py: learning the model from registrations (Eqs. 5.26-5.31).
 
 Training data come from the packaged model itself (random bone and shape coefficients, the rest pose
 and poses from the packaged CMU prior, 0.5 mm noise); the initial model is the packaged one with
@@ -15,8 +15,8 @@ import torch
 
 import blsm
 from blsm import io
-from blsm.learn import train as T
-from blsm.learn.bases import bone_mirror_index
+from blsm.learn.training import train as T
+from blsm.learn.training.bases import bone_mirror_index
 from blsm.mocap.prior import load_prior
 from blsm.model import BLSM, DEFAULT_MODEL
 
