@@ -47,7 +47,7 @@ def poses_section(n: int) -> str:
     import blsm
     from blsm.mocap.plausible import PoseChecker
     from synth.config import GeneratorConfig, PosesConfig
-    from synth.sample import PoseSource
+    from synth.poses import PoseSource
 
     checker = PoseChecker(blsm.load())
     rows = []
@@ -64,7 +64,7 @@ def poses_section(n: int) -> str:
         r = checker.check(torch.from_numpy(np.stack(xs)))
         rows.append((plausible, r, redraws, dt))
     lines = [
-        f"{n} prior poses drawn by `synth.sample.PoseSource` (seed 0, the packaged CMU prior), checked on the",
+        f"{n} prior poses drawn by `synth.poses.PoseSource` (seed 0, the packaged CMU prior), checked on the",
         "mean body by `blsm.mocap.plausible`:",
         "",
         "| `poses.plausible` | feet backwards, leg straightened (L / R) | toes behind heel as posed (L / R) | limb through torso | re-draws | rejection rate | ms per pose |",
@@ -130,8 +130,8 @@ def noise_section(config: str, work: Path, scenes: int, specs: list[str], ref_sp
 
     import blsm
     from blsm.mitsuba_util import resolve_variant
-    from synth.dataset import format as fmt
     from synth.config import load_config
+    from synth.dataset import format as fmt
     from synth.denoise import psnr
     from synth.generate import prepare_subjects
     from synth.sample import SampleMaker

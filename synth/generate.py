@@ -40,8 +40,9 @@ from synth.backgrounds import background_kind
 from synth.config import GeneratorConfig
 from synth.dataset.shards import ShardWriter, SkipSample, WriteError
 from synth.people import subject_pool_warning
+from synth.poses import PoseSource
 from synth.progress import Progress, log
-from synth.sample import SUBJECTS, PoseSource
+from synth.sample import SUBJECTS
 from synth.subjects import anny_subject, load_subject, model_fingerprint, save_subject
 
 SUBJECTS_LOCK = ".lock-subjects"

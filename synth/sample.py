@@ -1,20 +1,22 @@
-"""Making one sample: people drawn and posed, placed, filmed, rendered, labelled and encoded.
+"""Making one sample: a :class:`Scene` drawn (people drawn, posed and placed, a camera, a background,
+occluders), then rendered, labelled and encoded.
 
 A worker's :class:`SampleMaker` makes any sample from ``(seed, index)`` alone, in this order:
 
 1. **People.** Each draws a subject not yet in the image (:func:`synth.people.draw_subject`) and a pose
-   (:class:`PoseSource`: the pose prior or the motion library) and is posed (:func:`pose_person`,
-   which ``synth validate`` uses to rebuild the same meshes) into a :class:`Person`.
+   (:class:`synth.poses.PoseSource`: the pose prior or the motion library) and is posed
+   (:func:`pose_person`, which ``synth validate`` uses to rebuild the same meshes) into a :class:`Person`.
 2. **Placement** (:func:`synth.people.place_people`): footprint discs ``people.gap`` apart, feet on the ground.
-3. **Camera and background** (:func:`synth.camera.sample_camera`, :mod:`synth.backgrounds`).
-4. **Render and labels** (:meth:`SampleMaker.render_frame`): the people's scene
-   (:class:`synth.render.PeopleRenderer`, one per mesh topology, updated in place), the backdrop
-   composited behind them with their shadows and the lens's blur, and the labels
-   (:func:`synth.labels.person_labels`).
+3. **Camera and background** (:func:`synth.camera.sample_camera`, the background kind's draw:
+   :mod:`synth.backgrounds`), then the occluders and seats: steps 1-3 are
+   :meth:`SampleMaker.draw_scene`, which returns the :class:`Scene`.
+4. **Render** (:meth:`SampleMaker.render`): the people's scene (:class:`synth.render.PeopleRenderer`,
+   one per mesh topology, updated in place), the backdrop composited behind them with their shadows
+   and the lens's blur; **labels** (:meth:`SampleMaker.labels`, :func:`synth.labels.person_labels`).
 5. **Encoding** (:meth:`SampleMaker.encode`): the sample's fields (:mod:`synth.dataset.format`).
 
-Sequences (:class:`synth.sequence.SequenceMaker`, built on a worker's sample maker) reuse steps 1, 4
-and 5 per frame.
+Sequences (:class:`synth.sequence.SequenceMaker`, built on a worker's sample maker) make a
+:class:`Scene` per frame and reuse steps 4 and 5.
 """
 
 from __future__ import annotations
@@ -36,7 +38,8 @@ from synth.camera import facing_yaw_deg, outline_index, sample_camera
 from synth.config import GeneratorConfig
 from synth.dataset import format as fmt
 from synth.people import draw_subject, footprint, place_people
-from synth.postures import seats, vary
+from synth.poses import PoseSource
+from synth.postures import seats
 from synth.render import PeopleRenderer, RenderMesh, people_window
 from synth.subjects import Subject, load_subject, pose_subject
 
@@ -216,81 +219,6 @@ def pose_person(
         transforms=p["transforms"], pose=p["pose"], global_orient=p["global_orient"], transl=p["transl"],
         bone=p["bone"], shape=p["shape"], hair=posed_hair, cloth=cloth, skirt=skirt,
     )  # fmt: skip
-
-
-class PoseSource:
-    """Draws a pose (x, global orientation) from the prior or the motion library."""
-
-    def __init__(self, cfg: GeneratorConfig) -> None:
-        import blsm
-        from blsm.mocap.plausible import PoseChecker
-        from blsm.mocap.prior import DEFAULT_PRIOR, load_prior
-
-        self.cfg = cfg.poses
-        self.prior_path = self.cfg.prior or DEFAULT_PRIOR
-        self.prior = load_prior(self.prior_path)
-        check = self.cfg.plausible and self.cfg.source != "library"
-        self.model = blsm.load() if check or self.cfg.seated_rate or self.cfg.arms_rate else None  # loaded once
-        self.checker = PoseChecker(self.model) if check else None
-        self.clips: list[Any] = []
-        if self.cfg.source != "prior":
-            self.clips = self._load_clips()
-        self.child_clips = [i for i, c in enumerate(self.clips) if c.name in self.cfg.child_clips]
-
-    def _load_clips(self) -> list[Any]:
-        """The library's clips the config keeps (``clips``, ``exclude_clips``); a ValueError naming
-        the library for a clip it does not hold, or for none left."""
-        from blsm.mocap.library import list_clips, load_clip
-
-        try:
-            files = list_clips(self.cfg.library)
-        except ValueError as e:  # no folder, or no clips in it
-            raise ValueError(
-                f"{self.cfg.library}: no motion library (poses.library) there ({str(e).split(': ', 1)[-1]}); "
-                "make it with `make motions` or set poses.library to a folder written by `blsm mocap import`"
-            ) from None
-        names = {Path(f).stem for f in files}
-        unknown = [n for n in (*self.cfg.clips, *self.cfg.exclude_clips, *self.cfg.child_clips) if n not in names]
-        if unknown:
-            raise ValueError(f"{self.cfg.library}: the motion library has no clip {unknown[0]!r}")
-        if self.cfg.clips:
-            files = [f for f in files if Path(f).stem in self.cfg.clips]
-        files = [f for f in files if Path(f).stem not in self.cfg.exclude_clips]
-        if not files:
-            raise ValueError(f"{self.cfg.library}: the motion library holds no clips (after clips/exclude_clips)")
-        clips = [load_clip(f) for f in files]
-        kept = {c.name for c in clips}
-        left_out = [n for n in self.cfg.child_clips if n not in kept]
-        if left_out:
-            raise ValueError(f"{self.cfg.library}: poses.child_clips names {left_out[0]!r}, which clips/exclude_clips leave out")
-        return clips
-
-    def sample(self, rng: np.random.Generator, child: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
-        """A pose for one person; ``child`` (younger than 18) restricts library frames to
-        ``poses.child_clips`` where the config names them."""
-        use_lib = self.cfg.source == "library" or (self.cfg.source == "mix" and rng.uniform() < self.cfg.library_rate)
-        if use_lib:
-            if child and self.child_clips:
-                ci = self.child_clips[int(rng.integers(len(self.child_clips)))]
-            else:
-                ci = int(rng.integers(len(self.clips)))
-            clip = self.clips[ci]
-            fr = int(rng.integers(clip.num_frames))
-            return clip.pose[fr].astype(np.float32), clip.global_orient[fr].astype(np.float32), {"source": "library", "clip": clip.name, "frame": fr}
-        for redraws in range(self.cfg.max_redraws + 1):
-            g = torch.Generator().manual_seed(int(rng.integers(2**62)))
-            x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
-            varied = {}
-            if self.cfg.seated_rate or self.cfg.arms_rate:  # synth.postures; off, no draw is spent
-                x, varied = vary(x, self.model, self.cfg.seated_rate, self.cfg.arms_rate, rng)
-            if self.checker is None:
-                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, **varied}
-            if self.checker.check(torch.from_numpy(x)[None]).plausible[0]:
-                return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, "redraws": redraws, **varied}
-        raise ValueError(
-            f"{self.prior_path}: no plausible pose in {self.cfg.max_redraws + 1} draws "
-            "(a prior of implausible poses; set poses.plausible: false to use it as drawn)"
-        )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -485,16 +413,16 @@ class SampleMaker:
         return p
 
     def render_frame(self, scene: Scene, rng: np.random.Generator) -> tuple[Any, dict[str, Any]]:
-        """Render ``scene`` (its placed people and the occluders in front of them) and make their
-        labels; ``rng`` draws the render's seed (and the backdrop's lens effects)."""
-        cfg = self.cfg
-        index, people, camera, cam_info = scene.index, scene.people, scene.camera, scene.camera_info
-        back, occluders = scene.background, scene.occluders
-        occ = []
-        if occluders:
-            from synth.occluders import occluder_mesh
+        """:meth:`render` and :meth:`labels` of ``scene``."""
+        frame = self.render(scene, rng)
+        return frame, self.labels(scene, frame)
 
-            occ = [(o.kind, *occluder_mesh(o)) for o in occluders]  # (kind, vertices, faces, colours)
+    def render(self, scene: Scene, rng: np.random.Generator) -> Any:
+        """Path-trace ``scene``: its placed people and the occluders in front of them, over its
+        background; ``rng`` draws the render's seed (and the backdrop's lens effects)."""
+        cfg = self.cfg
+        people, camera, cam_info, back = scene.people, scene.camera, scene.camera_info, scene.background
+        occ = _occluder_meshes(scene.occluders)
         outline = np.concatenate([p.outline for p in people] + [v.astype(np.float32) for _, v, _, _ in occ])
         rigs = [p.rig for p in people]
         # With the shadow catcher or a thin lens the environment is hidden from the camera (as behind
@@ -515,15 +443,22 @@ class SampleMaker:
         )  # fmt: skip
         if composite:
             self._composite_backdrop(r, frame, camera, cam_info, back, outline, rng)
+        return frame
+
+    def labels(self, scene: Scene, frame: Any) -> dict[str, Any]:
+        """The labels of ``scene`` as ``frame`` rendered it (per pixel: who, which part and bone,
+        depth, the surface point; per person: keypoints, boxes, visibility)."""
+        people = scene.people
+        occ = _occluder_meshes(scene.occluders)
         labels = lab.person_labels(
-            frame, camera,
-            [{"vertices": p.vertices, "outline": p.outline, "faces": q.faces, "face_bones": q.face_bones,
-              "keypoints": p.keypoints, **self._hair_labels(p), **_cloth_labels(p)} for p, q in zip(people, rigs)],
+            frame, scene.camera,
+            [{"vertices": p.vertices, "outline": p.outline, "faces": p.rig.faces, "face_bones": p.rig.face_bones,
+              "keypoints": p.keypoints, **self._hair_labels(p), **_cloth_labels(p)} for p in people],
             self.bone_to_part, self.regions, self.is_joint, [(v, f) for _, v, f, _ in occ],
         )  # fmt: skip
         if labels["unassigned"]:
-            raise RuntimeError(f"sample {index}: {labels['unassigned']} hit pixels belong to no person's face")
-        return frame, labels
+            raise RuntimeError(f"sample {scene.index}: {labels['unassigned']} hit pixels belong to no person's face")
+        return labels
 
     def _hair_labels(self, p: Person) -> dict[str, Any]:
         if p.hair is None:
@@ -644,6 +579,15 @@ class SampleMaker:
             "box_full": None if lp["box_full"] is None else _l(lp["box_full"]),
             "pixels": lp["pixels"],
         }  # fmt: skip
+
+
+def _occluder_meshes(occluders: list[Any]) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray]]:
+    """``(kind, vertices, faces, colours)`` of each occluder (:func:`synth.occluders.occluder_mesh`)."""
+    if not occluders:
+        return []
+    from synth.occluders import occluder_mesh
+
+    return [(o.kind, *occluder_mesh(o)) for o in occluders]
 
 
 def _cloth_labels(p: Person) -> dict[str, Any]:

@@ -10,7 +10,7 @@ import blsm
 from blsm.mocap.library import MotionClip, save_clip
 from blsm.mocap.plausible import PoseChecker
 from synth.config import GeneratorConfig
-from synth.sample import PoseSource
+from synth.poses import PoseSource
 from synth.subjects import Population, sample_phenotype
 
 
