@@ -37,7 +37,7 @@ from torch import nn
 from blsm.camera import Camera
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parents[1] / "data" / "landmark_detector.pt"
-"""Where a packaged detector would be (``benchmarks/landmark_detector.py --package``). None is
+"""Where a packaged detector would be (``scripts/landmark_detector.py --package``). None is
 packaged: the one trained on CPU here is less accurate than MediaPipe (docs/markerless.md)."""
 
 CROP_GROWTH = 1.25

@@ -15,7 +15,7 @@ SimpleBaselines; Adam with a cosine learning rate. Part of the scans (``val_frac
 to report the pixel error of the decoded detections per epoch.
 
 ``blsm train-landmark-detector POPULATION [...] --out FILE`` runs it; the packaged detector was
-made by ``benchmarks/landmark_detector.py`` (docs/markerless.md).
+made by ``scripts/landmark_detector.py`` (docs/markerless.md).
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ class RegisterConfig:
             surface in stage 2 (1 = Eq. 5.15's point-to-point distance, the thesis; 0 = point-to-
             plane, the distance along the scan normal only). Random surface samples are about 1 cm
             apart at 20k samples, so a point-to-point pair also pulls across the surface; measured
-            on 18 held-out scans of the default population (``benchmarks/figures/registration_floor.py``):
+            on 18 held-out scans of the default population (``experiments/registration/registration_floor.py``):
             4.23 mm mean error at 1, 4.05 mm at 0. The default stays the thesis' term, with
             which the packaged model was made.
         normalisation: "mean" (every term a mean over its elements, as PyTorch3D's losses) or

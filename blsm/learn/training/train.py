@@ -324,7 +324,7 @@ def learn_model(
         config: :class:`TrainConfig` (defaults if None).
         on_shape_residuals: called once with the (N, V, 3) T-pose residuals that a shape decoder is
             learnt from (:func:`shape_residuals`), e.g. to train several spiral decoders on them
-            (``benchmarks/blsm_spiral_fig4.py``).
+            (``experiments/shape_space/blsm_spiral_fig4.py``).
 
     Returns:
         (model data accepted by :func:`blsm.io.save_model`, report dict: explained variances,
