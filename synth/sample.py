@@ -326,27 +326,29 @@ class SampleMaker:
 
     def background(self, rng: np.random.Generator, camera: Any) -> Background:
         """The image's background: the exposure and rotation, then the kind's own draws."""
-        b, cam = self.cfg.background, self.cfg.camera
+        b = self.cfg.background
         scale = float(2.0 ** rng.uniform(*b.exposure_ev))
         rot = float(rng.uniform(0, 2 * math.pi))
-        return self.backdrop.draw(self._backdrop_state, b, rng, camera, (cam.width, cam.height), rot, scale)
+        return self.backdrop.draw(self._backdrop_state, b, rng, camera, (camera.width, camera.height), rot, scale)
 
-    def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool) -> PeopleRenderer:
-        """The scene for these people's meshes. People of one topology and texture size (every
+    def renderer(self, meshes: list[RenderMesh], textures: list[np.ndarray], backplate: bool,
+                 size: tuple[int, int]) -> PeopleRenderer:
+        """The scene for these people's meshes, ``size`` (width, height) pixels (the image's camera
+        says it; a Mitsuba film's size is fixed when its scene is built). People of one topology and texture size (every
         Anny subject; the blsm pipeline always) share one scene of ``people.max`` slots, the
         unused ones hidden, so a worker compiles its kernels once for any people count; people of
         several topologies (scans, raw pipeline) get a scene per combination."""
         slots, shapes = meshes, [t.shape[:2] for t in textures]
         if len({m.key for m in meshes}) == 1 and len(set(shapes)) == 1:
             slots, shapes = [meshes[0]] * self.cfg.people.max, [shapes[0]] * self.cfg.people.max
-        key = (tuple(m.key for m in slots), tuple(shapes), backplate)
+        key = (tuple(m.key for m in slots), tuple(shapes), backplate, size)
         r = self._renderers.get(key)
         if r is None:
             if len(self._renderers) >= 4:
                 self._renderers.pop(next(iter(self._renderers)))
-            cam, b = self.cfg.camera, self.cfg.background
+            b = self.cfg.background
             r = PeopleRenderer(
-                slots, shapes, cam.width, cam.height,
+                slots, shapes, *size,
                 env_shape=(b.env_width // 2, b.env_width), variant=self.variant,
                 max_depth=self.cfg.render.max_depth, backplate=backplate,
                 denoise=self.cfg.render.denoise, denoise_threads=self.threads, hair=self.hair,
@@ -429,7 +431,8 @@ class SampleMaker:
         # a backplate) and the backdrop is composited after the render: darkened by the people's
         # shadows, blurred by the lens.
         composite = cfg.ground.shadows or "f_number" in cam_info
-        r = self.renderer([q.mesh for q in rigs], [q.texture for q in rigs], back.backplate is not None or composite)
+        r = self.renderer([q.mesh for q in rigs], [q.texture for q in rigs], back.backplate is not None or composite,
+                          (camera.width, camera.height))
         seed = int(rng.integers(2**31))
         frame = r.render(
             [p.vertices for p in people], [q.texture for q in rigs], camera,
