@@ -26,6 +26,9 @@ TASK_SECTIONS: dict[str, tuple[str, ...]] = {
 }
 """What a task is, for its config: the sections it reads (what a checkpoint stores and a resume
 compares). A section outside them must stay at its defaults: a config that sets one is refused."""
+TASK_UNSTORED: dict[str, tuple[str, ...]] = {"mesh": ("meshes",)}
+"""Sections a task reads that its checkpoints leave out (the image-to-mesh network's normalisation
+statistics are drawn from ``meshes``; its checkpoints never stored the section)."""
 TASK_KEYS: dict[str, tuple[str, ...]] = {
     "hmr_blsm": ("model.ief_iterations", "model.hidden", "model.dropout", "model.num_shape", "model.head_input",
                  "model.image_dropout", "model.train_blocks", "model.keypoint_width", "optim.backbone_lr",
@@ -529,9 +532,10 @@ class RecoveryConfig:
 
     def unused_settings(self) -> list[str]:
         """The sections (``"discriminator"``) and keys (``"train.frozen_bn"``) set away from their
-        defaults that the task does not read (:data:`TASK_SECTIONS`, :data:`TASK_KEYS`)."""
-        out = [name for name in SECTIONS if name not in TASK_SECTIONS[self.task]
-               and getattr(self, name) != type(getattr(self, name))()]
+        defaults that the task does not read (:data:`TASK_SECTIONS`, :data:`TASK_UNSTORED`,
+        :data:`TASK_KEYS`)."""
+        reads = (*TASK_SECTIONS[self.task], *TASK_UNSTORED.get(self.task, ()))
+        out = [name for name in SECTIONS if name not in reads and getattr(self, name) != type(getattr(self, name))()]
         for task, keys in TASK_KEYS.items():
             if task != self.task:
                 for key in keys:

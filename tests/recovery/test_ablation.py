@@ -40,11 +40,12 @@ def test_ablation_end_to_end(tmp_path, fake_root, train_cache, mesh_cache, model
     data = {"train": [str(fake_root)], "val": str(fake_root), "crop": CROP, "cache": str(train_cache), "workers": 0}
     ae_path = str(tmp_path / "runs" / "autoencoder" / "last.pt")
     mesh = {**TINY_MESH, "cache": str(mesh_cache)}
-    model_cfg = {"backbone": "efficientnet_lite0", "pretrained": False, "hidden": 16}
+    model_cfg = {"backbone": "efficientnet_lite0", "pretrained": False}  # the mesh network's hidden is mesh.hidden
+    hmr_cfg = {**model_cfg, "hidden": 16}
     configs = {
         "autoencoder": {"task": "autoencoder", "mesh": mesh, "meshes": meshes, "train": train},
-        "A": {"task": "hmr_blsm", "model": {**model_cfg, "ief_iterations": 1}, "data": data, "discriminator": {"enabled": False}, "train": train},
-        "B": {"task": "hmr_blsm", "model": model_cfg, "data": data, "discriminator": {"prior_samples": 64}, "train": train},
+        "A": {"task": "hmr_blsm", "model": {**hmr_cfg, "ief_iterations": 1}, "data": data, "discriminator": {"enabled": False}, "train": train},
+        "B": {"task": "hmr_blsm", "model": hmr_cfg, "data": data, "discriminator": {"prior_samples": 64}, "train": train},
         "C": {"task": "mesh", "model": model_cfg, "data": data, "mesh": mesh, "meshes": meshes, "train": train},
         "D": {"task": "mesh", "model": model_cfg, "data": data, "mesh": {**mesh, "autoencoder": ae_path, "freeze_decoder": True}, "meshes": meshes, "train": train},
         "E": {"task": "mesh", "model": model_cfg, "data": data, "mesh": mesh, "began": {"enabled": True}, "meshes": meshes, "train": train},

@@ -45,7 +45,7 @@ def test_a_began_training_step(cache_dir, model, tmp_path):
     ops = mesh_operators(None, tmp_path / "ops", settings, log=lambda *a: None)
     cfg = RecoveryConfig(
         task="mesh",
-        model=ModelConfig(backbone="resnet18", pretrained=False, hidden=32),
+        model=ModelConfig(backbone="resnet18", pretrained=False),
         data=DataConfig(train=(str(cache_dir),), crop=CROP, augment=None),
         loss=LossConfig(vertices=1.0, keypoints_2d=1.0, keypoints_3d=0.0),
         mesh=MeshConfig(channels=(4, 4, 4, 4), latent=8, hidden=32),
