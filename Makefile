@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-ablation recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-ablation movenet-ablation-full recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -172,6 +172,13 @@ movenet-ablation: movenet-data transfer-setup
 	test -f out/data/test/manifest.json || $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
 	$(BIN)/python experiments/transfer/movenet_rows.py
 	$(BIN)/python experiments/transfer/movenet_rows.py --rows kp_frozen --fit 30
+
+# The same rows at the same budget on the full training sets of recovery-data (3 x 10k images; issue 52),
+# into out/movenet_full and docs/figures/transfer_movenet_full.json: about 6 hours on 2 cores after the
+# data (about 1.5 hours a set); resumable.
+movenet-ablation-full: recovery-data movenet-data transfer-setup
+	$(BIN)/python experiments/transfer/movenet_rows.py --data full
+	$(BIN)/python experiments/transfer/movenet_rows.py --data full --rows kp_frozen thunder_kp_frozen --fit 30
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
 # Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on

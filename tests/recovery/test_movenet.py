@@ -443,6 +443,33 @@ def test_which_blocks_train_does_not_make_another_network() -> None:
     assert a.model_hash() == b.model_hash() != c.model_hash()
 
 
+def test_movenet_rows_on_the_full_sets_change_the_training_data_alone(tmp_path) -> None:
+    """``movenet_rows.py --data full``: each trained row's config is its own with data.train the
+    training sets of ``make recovery-data`` (and the seated postures), and a continuation starts from
+    the full runs' network, not the subsets'."""
+    import dataclasses
+    import importlib.util
+    from pathlib import Path
+
+    from recovery.config import load_config
+
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("movenet_rows", root / "experiments/transfer/movenet_rows.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    train, _, _ = mod.DATA["full"]
+    assert train[:3] == ["out/data/train_hdri", "out/data/train_sky", "out/data/train_mocap"]
+    for name in ("kp_frozen", "thunder_kp_frozen", "kp_frozen_long"):
+        old = load_config(root / mod.row_config(name, None, tmp_path))
+        new = load_config(mod.row_config(name, train, tmp_path))
+        assert new.data.train == tuple(train), name
+        init = str(tmp_path / "runs/kp_frozen/last.pt") if name == "kp_frozen_long" else ""
+        assert new.train.init == init, name
+        same = dataclasses.replace(new, data=dataclasses.replace(new.data, train=old.data.train),
+                                   train=dataclasses.replace(new.train, init=old.train.init))
+        assert same == old, name
+
+
 def test_movenet_rows_share_one_budget_and_data() -> None:
     """Every trained row of experiments/transfer/movenet_rows.py has a config that parses, 800 steps of 32 on one
     data set and one validation set (docs/transfer.md, "A backbone that reads people in photographs");
