@@ -69,6 +69,12 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     return ck
 
 
+def module_state(ck: dict[str, Any], name: str = "model") -> dict[str, torch.Tensor]:
+    """Module ``name``'s state dict of a checkpoint, floating tensors in float32 (an exported
+    checkpoint stores float16)."""
+    return {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"][name].items()}
+
+
 def network_hash(ck: dict[str, Any]) -> str | None:
     """The checkpoint's network as today's config defines it (:meth:`recovery.config.RecoveryConfig.model_hash`
     of its stored config), so that a setting later left out of the hash (``model.train_blocks``) does not

@@ -22,6 +22,7 @@ from blsm.io import sha256_file
 from recovery.checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
+    module_state,
     read_checkpoint,
     resolve,
     save_atomic,
@@ -183,7 +184,7 @@ def load_predictor(checkpoint: str | Path, model_path: str | Path | None = None,
     if sha256_file(mpath) != ck.get("blsm_model_sha256"):
         raise ValueError(f"{path}: made for another BLSM model file than {mpath} (SHA-256 differs)")
     body = blsm.load(mpath)
-    state = {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"]["model"].items()}
+    state = module_state(ck)
     model, regressor = build_network(cfg, body, mpath, log)
     try:
         model.load_state_dict(state)

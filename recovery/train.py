@@ -24,7 +24,7 @@ import torch
 
 from blsm.io import sha256_file
 from recovery import distributed as D
-from recovery.checkpoint import network_hash, read_checkpoint, resolve
+from recovery.checkpoint import module_state, network_hash, read_checkpoint, resolve
 from recovery.config import TASK_SECTIONS, RecoveryConfig, model_file
 from recovery.datasets.cache import CropCache, build_caches
 from recovery.models.backbones import check_backbone
@@ -80,7 +80,7 @@ def preflight(cfg: RecoveryConfig, resume: bool = False) -> dict[str, torch.Tens
         raise ValueError(f"{path}: train.init is not a checkpoint of this network (task or model settings differ)")
     if ck.get("blsm_model_sha256") != sha256_file(model_file(cfg)):
         raise ValueError(f"{path}: train.init was made with another BLSM model file")
-    return {k: v.float() if v.is_floating_point() else v for k, v in ck["modules"][network].items()}
+    return module_state(ck, network)
 
 
 def _train(cfg: RecoveryConfig, out: Path, resume: bool, log: Any, env: D.DistEnv,
