@@ -68,13 +68,23 @@ class OutputConfig:
 class LabelsConfig:
     """Optional labels (off by default). ``topology``: a model file from ``blsm reparam``; every
     sample then gets ``vertices_<topology_name>.npy.gz``, the people's bodies in that topology
-    (:mod:`synth.topology`)."""
+    (:mod:`synth.topology`). ``contact_distance`` (metres, > 0): the JSON's ``contacts``, the
+    vertices of each pair of people within that distance of the other's body
+    (:mod:`synth.contacts`). ``occupancy`` (points a person, > 0): ``occupancy.npy.gz``, points
+    near and around each body with inside/outside from the exact test, in the camera frame."""
 
     topology: str = ""
     topology_name: str = "topo2"
+    contact_distance: float = 0.0
+    occupancy: int = 0
 
     def __post_init__(self) -> None:
         import re
+
+        if not 0.0 <= self.contact_distance <= 0.5:
+            raise ValueError(f"labels.contact_distance must be in [0, 0.5] metres (0: off), got {self.contact_distance}")
+        if not 0 <= self.occupancy <= 100_000:
+            raise ValueError(f"labels.occupancy must be 0 (off) to 100000 points a person, got {self.occupancy}")
 
         if not re.match(r"^[a-z0-9_]{1,32}$", self.topology_name):
             raise ValueError(f"labels.topology_name must be 1-32 of a-z, 0-9, _; got {self.topology_name!r}")
@@ -184,9 +194,42 @@ class PosesConfig:
 
 
 @dataclass(frozen=True)
+class CloseConfig:
+    """``people.close``: the weights of the arrangements of ``people.placement: close``
+    (:mod:`synth.close`: side, facing, hands, shoulder, seated), the deepest vertex allowed inside
+    another person's body or seat (``tolerance``, metres), the spread of the relative facing
+    (``yaw_deg``) and how far a seated person may be raised to share a bench (``max_raise``, metres)."""
+
+    side: float = 1.0
+    facing: float = 1.0
+    hands: float = 1.0
+    shoulder: float = 1.0
+    seated: float = 1.0
+    tolerance: float = 0.002
+    yaw_deg: float = 20.0
+    max_raise: float = 0.1
+
+    def weights(self) -> dict[str, float]:
+        return {"side": self.side, "facing": self.facing, "hands": self.hands, "shoulder": self.shoulder,
+                "seated": self.seated}
+
+    def __post_init__(self) -> None:
+        w = self.weights()
+        if min(w.values()) < 0 or not sum(w.values()) > 0:
+            raise ValueError(f"people.close weights must be >= 0 and not all 0, got {w}")
+        if not 0.0 <= self.tolerance <= 0.05:
+            raise ValueError(f"people.close.tolerance must be in [0, 0.05] metres, got {self.tolerance}")
+        if not 0.0 <= self.yaw_deg <= 90.0 or not 0.0 <= self.max_raise <= 0.5:
+            raise ValueError(f"people.close: yaw_deg in [0, 90] and max_raise in [0, 0.5], got {self.yaw_deg}, {self.max_raise}")
+
+
+@dataclass(frozen=True)
 class PeopleConfig:
     """How many people per image (uniform in [min, max]) and the gap (metres) kept between their
     footprints, so that they never interpenetrate.
+
+    ``placement``: ``apart`` (default; the footprints ``gap`` apart) or ``close`` (people within
+    reach, touching without interpenetrating: :mod:`synth.close`, arranged by ``close``).
 
     ``distinct``: whether the people of one image (or clip) are different subjects. ``null``
     (default): they are whenever the subject pool holds ``max`` subjects; with fewer, a subject
@@ -200,10 +243,14 @@ class PeopleConfig:
     max: int = 1
     gap: float = 0.1
     distinct: bool | None = None
+    placement: str = "apart"
+    close: CloseConfig = field(default_factory=CloseConfig)
 
     def __post_init__(self) -> None:
         if not 1 <= self.min <= self.max <= 8:
             raise ValueError(f"people must satisfy 1 <= min <= max <= 8, got {self.min}, {self.max}")
+        if self.placement not in ("apart", "close"):
+            raise ValueError(f"people.placement must be apart or close, got {self.placement!r}")
         if self.gap < 0:
             raise ValueError(f"people.gap must be >= 0, got {self.gap}")
 
@@ -549,7 +596,8 @@ class GeneratorConfig:
     def occluder_slots(self) -> int:
         """The renderer's slots for objects that belong to no person: the scene's occluders and, with
         ``poses.seated_rate``, one seat per person (:mod:`synth.postures`)."""
-        return (self.occluders.max if self.occluders.enabled else 0) + (self.people.max if self.poses.seated_rate else 0)
+        seated = self.poses.seated_rate or (self.people.placement == "close" and self.people.close.seated)
+        return (self.occluders.max if self.occluders.enabled else 0) + (self.people.max if seated else 0)
 
     def __post_init__(self) -> None:
         if self.labels.topology and self.pipeline == "raw":
@@ -570,7 +618,13 @@ class GeneratorConfig:
             raise ValueError("subdivide applies to the blsm pipeline only")
         if self.garments.enabled and (self.pipeline != "rigged" or self.subjects.source != "anny"):
             raise ValueError("garments.enabled needs pipeline: rigged and subjects.source: anny (the painted outfits)")
+        if self.people.placement == "close" and self.pipeline == "raw":
+            raise ValueError("people.placement: close needs a posable pipeline (rigged or blsm), not raw")
         if self.sequence.enabled:
+            if self.people.placement != "apart":
+                raise ValueError("people.placement: close applies to single images, not to sequence.enabled")
+            if self.labels.occupancy:
+                raise ValueError("labels.occupancy applies to single images, not to sequence.enabled")
             if self.occluders.enabled:
                 raise ValueError("occluders.enabled applies to single images, not to sequence.enabled")
             if self.camera.frontal_rate:

@@ -456,10 +456,16 @@ def cfg_json(cfg: GeneratorConfig) -> dict:
     d = json.loads(json.dumps(asdict(cfg)))
     if not cfg.sequence.enabled:  # single images: the manifests of before
         d.pop("sequence")
-    if not cfg.labels.topology:  # no second topology: the manifests of before
+    for key in ("contact_distance", "occupancy"):  # off: the manifests of before these keys
+        if not d["labels"][key]:
+            d["labels"].pop(key)
+    if not cfg.labels.topology and len(d["labels"]) == 2:  # no optional label: the manifests of before
         d.pop("labels")
     if cfg.people.max == 1 and cfg.people.distinct is None:  # one person an image: drawn as before the key
         d["people"].pop("distinct")
+    if cfg.people.placement == "apart":  # the placement of before the key
+        d["people"].pop("placement")
+        d["people"].pop("close")
     if "align_horizon" not in background_kind(cfg.background.kind).records(cfg.background):
         d["background"].pop("align_horizon")
     return d

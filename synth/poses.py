@@ -63,9 +63,10 @@ class PoseSource:
             raise ValueError(f"{self.cfg.library}: poses.child_clips names {left_out[0]!r}, which clips/exclude_clips leave out")
         return clips
 
-    def sample(self, rng: np.random.Generator, child: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+    def sample(self, rng: np.random.Generator, child: bool = False, seated: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
         """A pose for one person; ``child`` (younger than 18) restricts library frames to
-        ``poses.child_clips`` where the config names them."""
+        ``poses.child_clips`` where the config names them; ``seated`` seats a prior draw whatever
+        ``poses.seated_rate`` says (:mod:`synth.close`'s benches)."""
         use_lib = self.cfg.source == "library" or (self.cfg.source == "mix" and rng.uniform() < self.cfg.library_rate)
         if use_lib:
             if child and self.child_clips:
@@ -79,8 +80,8 @@ class PoseSource:
             g = torch.Generator().manual_seed(int(rng.integers(2**62)))
             x = self.prior.sample(1, g)[0].numpy().astype(np.float32)
             varied = {}
-            if self.cfg.seated_rate or self.cfg.arms_rate:  # synth.postures; off, no draw is spent
-                x, varied = vary(x, self.model, self.cfg.seated_rate, self.cfg.arms_rate, rng)
+            if seated or self.cfg.seated_rate or self.cfg.arms_rate:  # synth.postures; off, no draw is spent
+                x, varied = vary(x, self.model, 1.0 if seated else self.cfg.seated_rate, self.cfg.arms_rate, rng)
             if self.checker is None:
                 return x, np.zeros(3, np.float32), {"source": "prior", "clip": "", "frame": -1, **varied}
             if self.checker.check(torch.from_numpy(x)[None]).plausible[0]:

@@ -372,33 +372,48 @@ class SampleMaker:
         cfg = self.cfg
         n = int(rng.integers(cfg.people.min, cfg.people.max + 1))
         people: list[Person] = []
-        for _ in range(n):
-            people.append(self.draw_person(rng, [p.si for p in people]))
-        for p in people:
-            v = p.shell()
-            p.outline = v[outline_index(v)]
-        for p, d in zip(people, place_people([footprint(p.outline) for p in people], cfg.people.gap, rng)):
-            p.move(d - np.array([0.0, p.vertices[:, 1].min(), 0.0]))  # the body's feet on the floor y = 0
+        close: dict[str, Any] | None = None
+        if cfg.people.placement == "close":  # within reach, touching (synth.close); seats made there
+            from synth.close import place_close
+
+            people, occluders, close = place_close(self, n, rng)
+        else:
+            for _ in range(n):
+                people.append(self.draw_person(rng, [p.si for p in people]))
+            for p in people:
+                v = p.shell()
+                p.outline = v[outline_index(v)]
+            for p, d in zip(people, place_people([footprint(p.outline) for p in people], cfg.people.gap, rng)):
+                p.move(d - np.array([0.0, p.vertices[:, 1].min(), 0.0]))  # the body's feet on the floor y = 0
         outline = np.concatenate([p.outline for p in people])  # every person's hull vertices
         facing = facing_yaw_deg(people[0].global_orient) if cfg.camera.frontal_rate else 0.0
         camera, cam_info = sample_camera(outline, cfg.camera, rng, facing_deg=facing)
         back = self.background(rng, camera)
-        occluders = seats(people, self.model.bone_names, rng) if cfg.poses.seated_rate else []
+        if close is None:
+            occluders = seats(people, self.model.bone_names, rng) if cfg.poses.seated_rate else []
         if cfg.occluders.enabled:
             from synth.occluders import place_occluders
 
             o = cfg.occluders
             occluders += place_occluders([footprint(p.outline) for p in people], camera, o.prob, o.max, cfg.people.gap, rng)
         extra = {"occluders": [q.to_json() for q in occluders]} if cfg.occluder_slots else None
+        if close is not None:
+            extra = {**(extra or {}), "placement": close}
         return Scene(index, people, camera, cam_info, back, occluders, extra)
 
-    def draw_person(self, rng: np.random.Generator, taken: Sequence[int] = ()) -> Person:
+    def draw_person(self, rng: np.random.Generator, taken: Sequence[int] = (), seated: bool = False,
+                    yaw_deg: float | None = None) -> Person:
         """A subject drawn (:func:`draw_subject`, the image's people so far having subjects ``taken``)
-        and posed by the pose source (at the origin, before placement)."""
+        and posed by the pose source (at the origin, before placement); ``seated`` seats a prior
+        pose, ``yaw_deg`` turns the body to face that way (:mod:`synth.close`)."""
         si = draw_subject(rng, len(self.subjects), taken, self.cfg.people.distinct)
         s = self.subjects[si]
         age = s.meta.get("phenotype", {}).get("age_years")
-        x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0)
+        x, orient, motion = self.poses.sample(rng, child=age is not None and age < 18.0, seated=seated)
+        if yaw_deg is not None:
+            from synth.close import turn_to
+
+            orient = turn_to(orient, yaw_deg)
         p = self.pose(si, x, orient, np.zeros(3, np.float32))
         p.motion = motion
         return p
@@ -461,6 +476,10 @@ class SampleMaker:
         )  # fmt: skip
         if labels["unassigned"]:
             raise RuntimeError(f"sample {scene.index}: {labels['unassigned']} hit pixels belong to no person's face")
+        if self.cfg.labels.contact_distance or self.cfg.labels.occupancy:
+            from synth.contacts import body_labels
+
+            labels.update(body_labels(self.cfg, scene, self.bone_to_part, list(self.model.part_names)))
         return labels
 
     def _hair_labels(self, p: Person) -> dict[str, Any]:
@@ -534,6 +553,8 @@ class SampleMaker:
         extra = dict(extra or {})
         doc["camera"].update(extra.pop("camera", {}))
         doc.update(extra)
+        if "contacts" in labels:
+            doc["contacts"] = labels["contacts"]
         rgb = np.round(linear_to_srgb(frame.rgb) * 255.0).astype(np.uint8)
         return {
             "rgb.png": fmt.encode_png(rgb),
@@ -544,6 +565,7 @@ class SampleMaker:
             "depth.exr": fmt.encode_exr(labels["depth"]),
             "corr.npy.gz": fmt.encode_npy_gz(labels["corr"]),
             **({} if self.topology is None else self._topology_member(people)),
+            **({"occupancy.npy.gz": fmt.encode_npy_gz(labels["occupancy"])} if "occupancy" in labels else {}),
         }
 
     def _topology_member(self, people: list[Person]) -> dict[str, bytes]:

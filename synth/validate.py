@@ -90,6 +90,9 @@ class MeshRebuilder:
         self.subdivide = bool(config.get("subdivide")) and config.get("pipeline") == "blsm"
         self.parents = subdivide(self.model.faces.numpy()) if self.subdivide else None
         labels = config.get("labels") or {}
+        self.contact_distance = float(labels.get("contact_distance") or 0.0)  # synth.contacts
+        self.occupancy = int(labels.get("occupancy") or 0)
+        self.body_faces = np.zeros((0, 3), np.int64)  # the last person's body faces
         self.topology = None  # labels.topology (synth.topology): the people's vertices in a second topology
         if labels.get("topology"):
             from synth.topology import Topology
@@ -128,10 +131,12 @@ class MeshRebuilder:
         p = pose_person(s, self.model, pipe, params["pose"], params["global_orient"], params["transl"],
                         self.parents, hair, garments)  # fmt: skip
         v, f, kp = p.vertices, p.faces, p.keypoints
+        self.body_faces = p.faces
         self.bones = p.vertex_bones  # the body's, for a sequence's contact regions
         if pipe == "raw":  # the scan as captured, moved to its place in the image
             d = params["transl"] - s.registration["transl"]
             v, kp = v + d, kp + d
+        self.last_body = (np.asarray(v, np.float64), p.faces)  # the body alone (contacts, occupancy)
         if p.hair is not None:
             from synth.hair import hair_faces
 
@@ -339,6 +344,7 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
     if not np.array_equal(ok_parts, s["parts"]):
         rep.fail(where, "parts do not follow the bones' parts")
     union = np.zeros((h, w), bool)
+    bodies = []  # (vertices, faces, vertex parts) of each person's body: contacts, occupancy
     for i, p in enumerate(doc["people"]):
         pw = f"{where} person {i}"
         kp3 = np.asarray(p["keypoints_3d"], np.float64)
@@ -367,6 +373,8 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
         verts, faces, kp_re = rebuild.mesh(p)
         for msg in check_topology(rebuild, p, s, i):
             rep.fail(pw, msg)
+        nb = len(rebuild.bones)
+        bodies.append((verts[:nb], rebuild.body_faces, bone_to_part[np.asarray(rebuild.bones)]))
         if np.abs(kp_re - kp3).max() > 1e-4:
             rep.fail(pw, f"keypoints_3d differ from the rebuilt body by {np.abs(kp_re - kp3).max() * 1000:.2f} mm")
         if "contact" in p:
@@ -384,8 +392,30 @@ def _check_sample(where: str, fields: dict[str, bytes], rebuild: MeshRebuilder, 
                 rep.fail(pw, msg)
         for msg in check_correspondences(cam, verts, faces, corr, depth, sel):
             rep.fail(pw, msg)
+    for msg in _check_body_labels(doc, s, bodies, rebuild, cam):
+        rep.fail(where, msg)
     hidden = occluder_coverage(doc.get("occluders") or [], cam, w, h)
     diff = int(((union ^ fg) & ~(union & hidden)).sum())
     if diff > max(2, EDGE_PIXELS * fg.sum()):
         rep.fail(where, f"the mask differs from the projected meshes in {diff} of {int(fg.sum())} pixels")
     return doc
+
+
+def _check_body_labels(doc: dict[str, Any], s: dict[str, Any], bodies: list, rebuild: MeshRebuilder, cam: Camera) -> list[str]:
+    """``contacts`` and ``occupancy`` (:mod:`synth.contacts`) recomputed from the rebuilt bodies;
+    either present without its config key is an error."""
+    from synth.contacts import check_contacts, check_occupancy
+
+    msgs = []
+    if rebuild.contact_distance:
+        msgs += check_contacts(doc, bodies)
+        got = {float(e.get("distance", -1)) for e in doc.get("contacts") or []}
+        if got - {rebuild.contact_distance}:
+            msgs.append(f"contacts use distance {sorted(got)}, the config says {rebuild.contact_distance}")
+    elif "contacts" in doc:
+        msgs.append("contacts present but the config has no labels.contact_distance")
+    if rebuild.occupancy:
+        msgs += check_occupancy(s.get("occupancy"), doc, bodies, rebuild.occupancy, cam.R, cam.t)
+    elif "occupancy" in s:
+        msgs.append("occupancy.npy.gz present but the config has no labels.occupancy")
+    return msgs

@@ -58,6 +58,23 @@ The JSON (``format`` "blsm-synth-sample", ``version`` 1) holds:
   person's whole projected mesh (may leave the image; null in a sequence's frame where the person is
   wholly behind the camera), ``pixels`` (visible mask area).
 
+Optional keys, each only where its option is on (a default config writes none of them):
+
+- ``occluders`` (with ``occluders.enabled`` or seats): the objects that belong to no person
+  (:class:`synth.occluders.Occluder` records);
+- ``placement`` (with ``people.placement: close``, :mod:`synth.close`): the image's
+  ``arrangement``, whether the seated people share one ``bench``, and per placed pair ``people``
+  [partner, person], the ``arrangement`` placed, ``depth_mm`` (the deepest vertex of one inside the
+  other, exact test) and ``gap_mm`` (their closest vertex-to-surface distance);
+- ``contacts`` (with ``labels.contact_distance``, :mod:`synth.contacts`): per pair of people ``i < j``,
+  ``people``, ``distance`` (metres), ``vertices`` (two sorted lists of body-mesh vertex indices within
+  ``distance`` of the other's body surface, inside included), ``parts`` (their part names) and
+  ``closest_mm``.
+
+With ``labels.occupancy`` = N a sample also has ``occupancy.npy.gz``: (P, N, 4) float32 (gzip of
+``numpy.save``), per person in mask order N points in the camera frame (metres) and 1 where the
+point is inside the person's body mesh (exact winding-number test), else 0 (:mod:`synth.contacts`).
+
 **Precision.** Every real number of the JSON (``K``, ``R``, ``t``, keypoints, BLSM parameters) is
 rounded to ``JSON_DECIMALS`` = 6 decimals, an error of at most ``JSON_ROUNDING`` = 5e-7 (metres,
 pixels, radians). A check that recomputes one stored value from others must allow for that

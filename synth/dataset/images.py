@@ -33,6 +33,13 @@ inside the crop), ``keypoints_3d`` (K, 3) camera metres relative to the pelvis, 
 axis-angle, ``transl_cam`` (3,) metres, ``K_crop`` (3, 3), ``affine`` (3, 3) the map ``A``,
 ``mask`` (crop, crop) bool, ``parts`` (crop, crop) int64 (0 background, 1 + ``PART_NAMES`` index),
 ``index`` (sample index) and ``person`` (int64).
+
+Datasets made with the optional body labels (:mod:`synth.contacts`) add, for every item:
+``contact_parts`` (6,) 1 where that part (``PART_NAMES`` order, swapped with a flip) of the person
+is within the contact distance of another person's body (``labels.contact_distance``;
+:meth:`SynthDataset.contacts` gives the vertex lists), and ``occupancy`` (N, 4): the person's
+occupancy points in the crop's camera frame (``L x``, the frame of ``transl_cam``) and their
+inside flag (``labels.occupancy``).
 """
 
 from __future__ import annotations
@@ -151,6 +158,8 @@ class SynthDataset(torch.utils.data.Dataset):
             raise ValueError(f"crop and box_scale must be positive, got {crop}, {box_scale}")
         self.crop, self.box_scale, self.antialias = int(crop), float(box_scale), bool(antialias)
         self.index = DatasetIndex(path, allow_incomplete)
+        extra = self.index.config.get("labels") or {}
+        self.has_contacts, self.has_occupancy = bool(extra.get("contact_distance")), bool(extra.get("occupancy"))
         self.items: list[tuple[int, int]] = []
         names: list[str] | None = None
         for i in range(len(self.index)):
@@ -220,7 +229,8 @@ class SynthDataset(torch.utils.data.Dataset):
         def f32(x: Any) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x, np.float64), dtype=torch.float32)
 
-        return {
+        out = {} if not (self.has_contacts or self.has_occupancy) else self._body_labels(s, p, lmat, flip)
+        return out | {
             "image": image,
             "keypoints_2d": torch.cat([f32(uv), f32(vis)[:, None]], 1),
             "keypoints_3d": f32(rel),
@@ -237,6 +247,39 @@ class SynthDataset(torch.utils.data.Dataset):
             "index": torch.tensor(lab["index"]),
             "person": torch.tensor(p),
         }
+
+    def contacts(self, i: int) -> list[dict[str, Any]]:
+        """Item ``i``'s person's contacts (:mod:`synth.contacts`): per other person ``with``, its
+        own ``vertices`` and ``parts`` within the contact distance, the ``distance`` and ``closest_mm``."""
+        s, p = self.items[i]
+        out = []
+        for e in self.index.json(s).get("contacts") or []:
+            if p in e["people"]:
+                k = e["people"].index(p)
+                out.append({"with": e["people"][1 - k], "vertices": e["vertices"][k], "parts": e["parts"][k],
+                            "distance": e["distance"], "closest_mm": e["closest_mm"]})
+        return out
+
+    def _body_labels(self, s: int, p: int, lmat: np.ndarray, flip: bool) -> dict[str, torch.Tensor]:
+        """``contact_parts`` and ``occupancy`` of person ``p`` of sample ``s`` (module docstring)."""
+        out = {}
+        where = self.index.where(s)
+        if self.has_contacts:
+            touched = np.zeros(len(fmt.PART_NAMES), np.float32)
+            for e in self.index.json(s).get("contacts") or []:
+                if p in e["people"]:
+                    for name in e["parts"][e["people"].index(p)]:
+                        touched[fmt.PART_NAMES.index(name)] = 1.0
+            if flip:
+                touched = touched[_PART_SWAP[1:].numpy() - 1]
+            out["contact_parts"] = torch.from_numpy(touched)
+        if self.has_occupancy:
+            occ = fmt.decode_npy_gz(self.index.read(s, ("occupancy.npy.gz",))["occupancy.npy.gz"], f"{where}.occupancy.npy.gz")
+            if occ.ndim != 3 or p >= len(occ) or occ.shape[2] != 4:
+                raise ValueError(f"{where}.occupancy.npy.gz: not (P, N, 4) for person {p}")
+            q = occ[p].astype(np.float64)
+            out["occupancy"] = torch.from_numpy(np.concatenate([q[:, :3] @ lmat.T, q[:, 3:]], 1).astype(np.float32))
+        return out
 
     def _read(self, s: int, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Sample ``s``'s image (H, W, 3), person ``p``'s mask (H, W) bool, the parts (H, W) and labels."""

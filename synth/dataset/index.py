@@ -49,6 +49,7 @@ class DatasetIndex:
             raise ValueError(f"{man_path}: not a {SHARDS_FORMAT!r} manifest")
         if not man.get("complete") and not allow_incomplete:
             raise ValueError(f"{man_path}: the dataset is incomplete (generation unfinished)")
+        self.config: dict[str, Any] = man.get("config") if isinstance(man.get("config"), dict) else {}
         shards = man.get("shards") or {}
         if not isinstance(shards, dict) or not all(
             isinstance(e, dict) and isinstance(e.get("samples", -1), int) for e in shards.values()
