@@ -135,7 +135,8 @@ class MeshSDF:
         self.vertex_n = vn
         # Edge k of a face joins corners (k + 1) % 3 and (k + 2) % 3 (opposite corner k).
         edges = np.stack([np.sort(self.f[:, [(k + 1) % 3, (k + 2) % 3]], axis=1) for k in range(3)], 1).reshape(-1, 2)
-        key, inv, count = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+        code = edges[:, 0] * len(self.v) + edges[:, 1]  # one integer an edge: a 1-D unique is fast
+        key, inv, count = np.unique(code, return_inverse=True, return_counts=True)
         if (count != 2).any():
             raise ValueError(f"the mesh is not closed and manifold: {int((count != 2).sum())} edges without two faces")
         en = np.zeros((len(key), 3))

@@ -9,7 +9,7 @@ per pair of people ``i < j`` (in mask order), each with
   ``j``'s body surface is at most ``distance`` (inside counts: negative), and ``j``'s to ``i``'s;
 - ``parts``: the body parts (``part_names``) of those vertices, each list sorted;
 - ``closest_mm``: the smallest signed vertex-to-surface distance between the two (millimetres;
-  negative: the deepest vertex inside the other).
+  negative: the deepest vertex inside the other), or null where it is over 50 mm.
 
 Distances are to the bodies' closed meshes (:mod:`blsm.occupancy`: exact point-triangle distances
 signed by the winding number); hair and clothes are left out (their vertices are not the body's).
@@ -31,6 +31,7 @@ import numpy as np
 from blsm import occupancy
 
 OCCUPANCY = "occupancy.npy.gz"
+REACH_M = 0.05  # closest_mm is given up to this distance (null beyond)
 BOUNDARY_M = 1e-4  # validate: a vertex this close to the contact distance may fall either way
 
 
@@ -63,19 +64,31 @@ def contact_labels(bodies: list[tuple[np.ndarray, np.ndarray, np.ndarray]], part
             closest = np.inf
             for a, b in ((i, j), (j, i)):
                 va, _, parts = bodies[a]
-                s = signed_to(va, bodies[b])
+                s = signed_to(va, bodies[b], max(distance, REACH_M))
                 near = np.flatnonzero(s <= distance)
                 entry["vertices"].append([int(k) for k in near])
                 entry["parts"].append(sorted({part_names[int(q)] for q in parts[near]}))
                 closest = min(closest, float(s.min()))
-            entry["closest_mm"] = round(1000.0 * closest, 3)
+            entry["closest_mm"] = round(1000.0 * closest, 3) if closest <= REACH_M else None
             out.append(entry)
     return out
 
 
-def signed_to(points: np.ndarray, body: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
-    """(N,) signed distances of ``points`` to ``body``'s surface (negative inside)."""
-    return occupancy.signed_distance(points, body[0], body[1])[0]
+def signed_to(points: np.ndarray, body: tuple[np.ndarray, np.ndarray, np.ndarray], upper: float = np.inf) -> np.ndarray:
+    """(N,) signed distances of ``points`` to ``body``'s surface (negative inside); with ``upper``,
+    points outside the body's box grown by ``upper`` get ``+inf`` (they are farther than that).
+    The body's closed mesh gets :class:`blsm.occupancy.MeshSDF` (exact for a closed manifold mesh;
+    an open one, a scan's, gets the winding-number sign)."""
+    v, f = np.asarray(body[0], np.float64), body[1]
+    out = np.full(len(points), np.inf)
+    sel = np.all((points >= v.min(0) - upper) & (points <= v.max(0) + upper), axis=1)
+    if not sel.any():
+        return out
+    try:
+        out[sel] = occupancy.MeshSDF(v, f)(points[sel])[0]
+    except ValueError:  # not closed and manifold
+        out[sel] = occupancy.signed_distance(points[sel], v, f)[0]
+    return out
 
 
 def occupancy_points(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -102,7 +115,7 @@ def check_contacts(doc: dict[str, Any], bodies: list[tuple[np.ndarray, np.ndarra
         i, j = e["people"]
         d = float(e["distance"])
         for side, (a, b) in enumerate(((i, j), (j, i))):
-            s = signed_to(bodies[a][0], bodies[b])
+            s = signed_to(bodies[a][0], bodies[b], max(d, REACH_M))
             got = np.zeros(len(s), bool)
             idx = np.asarray(e["vertices"][side], np.int64)
             if idx.size and (idx.min() < 0 or idx.max() >= len(s)):

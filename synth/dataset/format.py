@@ -69,7 +69,7 @@ Optional keys, each only where its option is on (a default config writes none of
 - ``contacts`` (with ``labels.contact_distance``, :mod:`synth.contacts`): per pair of people ``i < j``,
   ``people``, ``distance`` (metres), ``vertices`` (two sorted lists of body-mesh vertex indices within
   ``distance`` of the other's body surface, inside included), ``parts`` (their part names) and
-  ``closest_mm``.
+  ``closest_mm`` (their smallest signed vertex-to-surface distance; null over 50 mm).
 
 With ``labels.occupancy`` = N a sample also has ``occupancy.npy.gz``: (P, N, 4) float32 (gzip of
 ``numpy.save``), per person in mask order N points in the camera frame (metres) and 1 where the

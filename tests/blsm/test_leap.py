@@ -1,0 +1,64 @@
+"""blsm.leap: LEAP's equations on BLSM bodies (Eqs. 10-13), the shape encoder's inversion of the
+model and the networks' shapes."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from blsm.leap import Leap, LeapConfig, blend_forward, blend_inverse
+
+
+@pytest.fixture(scope="module")
+def bodies(model):
+    g = torch.Generator().manual_seed(0)
+    n = 3
+    bone = model.population_bone[:n]
+    with torch.no_grad():
+        out = model(pose=torch.randn(n, model.num_dofs, generator=g), bone=bone,
+                    global_orient=0.3 * torch.randn(n, 3, generator=g), transl=torch.randn(n, 3, generator=g))
+    return bone, out
+
+
+def test_blend_inverse_undoes_lbs(model, bodies):
+    """Eq. 10 with the true weights of a template vertex maps its posed position back (Eq. 9)."""
+    bone, out = bodies
+    B = out.skinning_transforms
+    idx = torch.arange(0, model.num_vertices, 97)
+    rest = out.template[:, idx]
+    w = model.weights[idx][None].expand(len(B), -1, -1)
+    n, m = len(B), len(idx)
+    Bp = B[:, None].expand(-1, m, -1, -1, -1).reshape(n * m, *B.shape[1:])
+    posed = blend_forward(w.reshape(n * m, -1), Bp, rest.reshape(-1, 3))
+    assert torch.allclose(posed.reshape(n, m, 3), out.vertices[:, idx], atol=1e-5)
+    back = blend_inverse(w.reshape(n * m, -1), Bp, posed)
+    assert torch.allclose(back.reshape(n, m, 3), rest, atol=1e-5)
+
+
+def test_shape_encoder_inverts_the_model(model, bodies):
+    """The bones' scales give back the rest joints and the template's bone part (no shape coefficients)."""
+    bone, out = bodies
+    leap = Leap(model)
+    body = leap.body(out.skinning_transforms)
+    assert torch.allclose(body["joints"], out.rest_joints, atol=1e-5)
+    with torch.no_grad():
+        want = model(bone=bone).template[:, leap.sub]
+    assert torch.allclose(body["rest"], want, atol=1e-4)
+    rot = body["R"]
+    assert torch.allclose(rot @ rot.transpose(-1, -2), torch.eye(3).expand_as(rot), atol=1e-5)
+
+
+@pytest.mark.parametrize("cycle", [True, False])
+def test_forward_shapes_and_cycle(model, bodies, cycle):
+    _, out = bodies
+    leap = Leap(model, LeapConfig(width=32, blocks=1, mesh_points=64, cycle=cycle))
+    x = out.vertices[:, :50] + 0.01
+    r = leap(out.skinning_transforms, x)
+    assert r["logits"].shape == (3, 50) and r["w_inv"].shape == (3, 50, model.num_joints)
+    assert torch.allclose(r["w_inv"].sum(-1), torch.ones(3, 50), atol=1e-5)
+    if cycle:
+        assert (r["d"] >= 0).all() and (r["d"] <= 2.0 + 1e-5).all()
+    else:
+        assert (r["d"] == 0).all()
+    r["logits"].sum().backward()  # differentiable end to end, w.r.t. the networks
+    assert leap.onet.inp.weight.grad is not None
