@@ -2,7 +2,7 @@
 upscaled, and the contact vertices of every pair (``contacts``) projected onto it, one colour per
 person (the bodies rebuilt from the labels, as ``synth validate`` does).
 
-    python experiments/close/figure.py out/close --out docs/figures/close_contacts.png --count 12
+    python experiments/close/figure.py out/close --out docs/figures/close_contacts.jpg --count 12
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     for k, t in enumerate(tiles):
         sheet.paste(t, ((k % args.columns) * tw, (k // args.columns) * th))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(args.out)
+    sheet.save(args.out, quality=88) if args.out.suffix.lower() in (".jpg", ".jpeg") else sheet.save(args.out)
     print(args.out)
     return 0
 
