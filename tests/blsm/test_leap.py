@@ -62,3 +62,24 @@ def test_forward_shapes_and_cycle(model, bodies, cycle):
         assert (r["d"] == 0).all()
     r["logits"].sum().backward()  # differentiable end to end, w.r.t. the networks
     assert leap.onet.inp.weight.grad is not None
+
+
+def test_data_points_and_splits(model, tmp_path):
+    import numpy as np
+
+    from blsm import occupancy
+    from blsm.leap.data import body_points, draw_bodies, load_clips, subject_split
+
+    train, unseen = subject_split(len(model.population_bone))
+    assert len(np.intersect1d(train, unseen)) == 0 and (unseen % 10 == 9).all() and len(unseen) == len(model.population_bone) // 10
+    g = torch.Generator().manual_seed(1)
+    np.savez(tmp_path / "clip_a.npz", pose=torch.randn(5, model.num_dofs, generator=g).numpy(), global_orient=np.zeros((5, 3)))
+    clips = load_clips(tmp_path)
+    rng = np.random.default_rng(0)
+    bodies = draw_bodies(model, clips, unseen, 2, rng)
+    assert bodies.B.shape == (2, model.num_joints, 3, 4) and set(bodies.subject) <= set(unseen)
+    p = body_points(model, bodies.vertices[0], bodies.template[0], 400, rng)
+    assert p["x"].shape == (400, 3) and p["w"].shape == (400, model.num_joints)
+    want = occupancy.inside(p["x"], bodies.vertices[0], model.faces.numpy())  # the exact winding number
+    assert np.array_equal(p["occ"] > 0.5, want) and 0.05 < p["occ"].mean() < 0.95
+    assert np.allclose(p["wc"].sum(1), 1.0, atol=1e-5)
