@@ -238,6 +238,7 @@ def cmd_build_anny(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from blsm.leap.cli import add_parser as add_leap
     from blsm.learn.cli import add_parsers as add_learning
     from blsm.learn.cli import command
     from blsm.mocap.cli import add_parser as add_mocap
@@ -271,6 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
                             "starting point of `blsm train` (blsm/data/blsm_anny_rig.npz)")
     build.set_defaults(func=command("build-anny", cmd_build_anny))
     add_mocap(sub)
+    add_leap(sub)  # leap train, leap evaluate (blsm.leap.cli)
     add_learning(sub)  # scans, register, learn, train, evaluate, train-smpl (blsm.learn.cli)
     return p
 

@@ -1,0 +1,66 @@
+"""``blsm leap train CONFIG --out DIR [--resume]`` and ``blsm leap evaluate DIR``
+(:mod:`blsm.leap.train`)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+
+def load_config(path: str | Path) -> Any:
+    from blsm.config import config_from_dict
+    from blsm.io import read_yaml
+    from blsm.leap.train import LeapTrainConfig
+
+    return config_from_dict(LeapTrainConfig, read_yaml(path, "LEAP training config"), str(path))
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from blsm.leap.train import train
+
+    cfg = load_config(args.config)
+    print(f"[leap] checkpoint {train(cfg, Path(args.out), resume=args.resume)}")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+
+    import blsm
+    from blsm.config import config_from_dict
+    from blsm.leap.model import Leap
+    from blsm.leap.train import LeapTrainConfig, evaluate
+
+    run = Path(args.run)
+    ck_path = run / "last.pt"
+    if not ck_path.is_file() or not (run / "data.npz").is_file():
+        raise ValueError(f"{run}: no LEAP run here (last.pt and data.npz)")
+    ck = torch.load(ck_path, weights_only=False)
+    cfg = config_from_dict(LeapTrainConfig, ck["config"], str(ck_path))
+    leap = Leap(blsm.load(), cfg.net)
+    leap.load_state_dict(ck["model"])
+    with np.load(run / "data.npz") as d:
+        data = {k: d[k] for k in d.files}
+    res = {"step": ck["step"], "cycle": cfg.net.cycle, "held_out_clips": [str(c) for c in data["held_out_clips"]]}
+    for split in ("unseen_poses", "unseen_subjects"):
+        res[split] = evaluate(leap, data, split)
+    text = json.dumps(res, indent=1)
+    print(text)
+    (run / "metrics.json").write_text(text + "\n")
+    return 0
+
+
+def add_parser(sub: Any) -> None:
+    p = sub.add_parser("leap", help="LEAP occupancy networks on BLSM's bones: train, evaluate")
+    lsub = p.add_subparsers(dest="leap_cmd", required=True)
+    t = lsub.add_parser("train", help="train both stages (resumable)")
+    t.add_argument("config", help="configs/leap/*.yaml")
+    t.add_argument("--out", required=True)
+    t.add_argument("--resume", action="store_true")
+    t.set_defaults(func=cmd_train)
+    e = lsub.add_parser("evaluate", help="IoU on unseen poses and unseen subjects into RUN/metrics.json")
+    e.add_argument("run")
+    e.set_defaults(func=cmd_evaluate)
