@@ -1,5 +1,6 @@
 """Small triangle-mesh helpers shared by the model builder, the scan tools, the registration and the
-generator: vertex normals (numpy), edges and the uniform Laplacian (torch)."""
+generator: vertex normals and barycentric coordinates (numpy), edges and the uniform Laplacian
+(torch)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,18 @@ from typing import Any
 
 import numpy as np
 import torch
+
+
+def barycentric(tri: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentric coordinates of points ``p`` (N, 3) in the planes of triangles ``tri``
+    (N, 3, 3), by Cramer's rule on the triangle's plane; negative outside the triangle."""
+    e1, e2, d = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+    d00, d01, d11 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    d20, d21 = (d * e1).sum(1), (d * e2).sum(1)
+    den = np.maximum(d00 * d11 - d01 * d01, 1e-30)
+    b1 = (d11 * d20 - d01 * d21) / den
+    b2 = (d00 * d21 - d01 * d20) / den
+    return np.stack([1.0 - b1 - b2, b1, b2], 1)
 
 
 def face_incidence(faces: np.ndarray, num_vertices: int) -> Any:

@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from blsm.mesh import barycentric
+
 NEAR_SIGMA_M = 0.01
 """Standard deviation (metres) of the points :func:`sample_points` draws around the surface."""
 BOX_PADDING = 0.1
@@ -153,14 +155,7 @@ class MeshSDF:
         d2, fi, c = self.tree.squared_distance(self.v, self.f, p)
         fi = np.asarray(fi, np.int64)
         tri = self.v[self.f[fi]]
-        # Barycentrics of the nearest point: which feature (face, edge, vertex) it lies on.
-        v0, v1, v2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], c - tri[:, 0]
-        d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-        d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-        den = np.maximum(d00 * d11 - d01 * d01, 1e-30)
-        b1 = (d11 * d20 - d01 * d21) / den
-        b2 = (d00 * d21 - d01 * d20) / den
-        bary = np.stack([1.0 - b1 - b2, b1, b2], 1)
+        bary = barycentric(tri, c)  # of the nearest point: which feature (face, edge, vertex) it lies on
         zero = bary <= eps
         normal = self.face_n[fi].copy()
         on_edge = zero.sum(1) == 1

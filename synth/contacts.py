@@ -58,13 +58,14 @@ def contact_labels(bodies: list[tuple[np.ndarray, np.ndarray, np.ndarray]], part
     """The ``contacts`` of the module docstring; ``bodies``: per person (V, 3) vertices, (F, 3)
     faces and (V,) each vertex's part index."""
     out = []
+    dist = [surface_distance(v, f) for v, f, _ in bodies]  # one distance structure a body, for all its pairs
     for i in range(len(bodies)):
         for j in range(i + 1, len(bodies)):
             entry: dict[str, Any] = {"people": [i, j], "distance": float(distance), "vertices": [], "parts": []}
             closest = np.inf
             for a, b in ((i, j), (j, i)):
                 va, _, parts = bodies[a]
-                s = signed_to(va, bodies[b], max(distance, REACH_M))
+                s = signed_to(va, bodies[b], max(distance, REACH_M), dist=dist[b])
                 near = np.flatnonzero(s <= distance)
                 entry["vertices"].append([int(k) for k in near])
                 entry["parts"].append(sorted({part_names[int(q)] for q in parts[near]}))
@@ -74,25 +75,34 @@ def contact_labels(bodies: list[tuple[np.ndarray, np.ndarray, np.ndarray]], part
     return out
 
 
+def surface_distance(vertices: np.ndarray, faces: np.ndarray) -> Any:
+    """``f(points) -> (N,)`` unsigned distances to one body's surface: a :class:`MeshSDF` built once
+    (libigl's distance where the mesh is not closed and manifold, a scan)."""
+    v = np.asarray(vertices, np.float64)
+    try:
+        sdf = occupancy.MeshSDF(v, faces)
+    except ValueError:
+        return lambda q: occupancy.distance(q, v, faces)
+    return lambda q: np.abs(sdf(q)[0])
+
+
 def signed_to(points: np.ndarray, body: tuple[np.ndarray, np.ndarray, np.ndarray], upper: float = np.inf,
-              exact: bool = False) -> np.ndarray:
+              exact: bool = False, dist: Any = None) -> np.ndarray:
     """(N,) signed distances of ``points`` to ``body``'s surface (negative inside); with ``upper``,
     points outside the body's box grown by ``upper`` get ``+inf`` (they are farther than that).
     The distance is exact (libigl's AABB tree); the sign is the winding number's, which stays right
     where a posed body passes through itself (the pseudonormal sign does not): libigl's fast one
     (agreed with the exact one on 213,348 test points; :mod:`blsm.occupancy`) or, with ``exact``,
-    the exact one (``synth validate`` checks the labels with it)."""
+    the exact one (``synth validate`` checks the labels with it). ``dist``: the body's
+    :func:`surface_distance`, where the caller keeps one for several queries."""
     v, f = np.asarray(body[0], np.float64), body[1]
     out = np.full(len(points), np.inf)
     sel = np.all((points >= v.min(0) - upper) & (points <= v.max(0) + upper), axis=1)
     if not sel.any():
         return out
     q = points[sel]
-    try:
-        dist = np.abs(occupancy.MeshSDF(v, f)(q)[0])
-    except ValueError:  # not closed and manifold (a scan): libigl's distance
-        dist = occupancy.distance(q, v, f)
-    out[sel] = np.where(occupancy.inside(q, v, f, exact), -dist, dist)
+    d = (dist or surface_distance(v, f))(q)
+    out[sel] = np.where(occupancy.inside(q, v, f, exact), -d, d)
     return out
 
 
@@ -116,11 +126,12 @@ def check_contacts(doc: dict[str, Any], bodies: list[tuple[np.ndarray, np.ndarra
     if not isinstance(entries, list) or {tuple(e.get("people", ())) for e in entries} != want or len(entries) != len(want):
         return [f"contacts must hold one entry per pair of the {n} people"]
     msgs = []
+    dist = [surface_distance(v, f) for v, f, _ in bodies]
     for e in entries:
         i, j = e["people"]
         d = float(e["distance"])
         for side, (a, b) in enumerate(((i, j), (j, i))):
-            s = signed_to(bodies[a][0], bodies[b], max(d, REACH_M), exact=True)
+            s = signed_to(bodies[a][0], bodies[b], max(d, REACH_M), exact=True, dist=dist[b])
             got = np.zeros(len(s), bool)
             idx = np.asarray(e["vertices"][side], np.int64)
             if idx.size and (idx.min() < 0 or idx.max() >= len(s)):

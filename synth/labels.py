@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from blsm.camera import Camera
+from blsm.mesh import barycentric
 from synth.render import Frame
 
 SURFACE_TOL = 0.05  # metres
@@ -90,13 +91,7 @@ def assign_hits(frame: Frame, meshes: list[tuple[np.ndarray, np.ndarray]]) -> tu
         n = np.cross(e1, e2)
         nn = np.linalg.norm(n, axis=1)
         dist = np.abs(np.einsum("nc,nc->n", d, n)) / np.maximum(nn, 1e-20)
-        # Barycentrics by areas (Cramer's rule on the triangle's plane).
-        d00, d01, d11 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-        d20, d21 = (d * e1).sum(1), (d * e2).sum(1)
-        den = np.maximum(d00 * d11 - d01 * d01, 1e-30)
-        b1 = (d11 * d20 - d01 * d21) / den
-        b2 = (d00 * d21 - d01 * d20) / den
-        b = np.stack([1 - b1 - b2, b1, b2], 1)
+        b = barycentric(tri, p)
         outside = np.clip(-b, 0, None).sum(1)  # 0 inside the triangle
         score = dist + outside * np.sqrt(nn)  # a point off the triangle is far from it
         better = ok & (score < best)

@@ -72,7 +72,10 @@ def main(argv: list[str] | None = None) -> int:
     for k, t in enumerate(tiles):
         sheet.paste(t, ((k % args.columns) * tw, (k // args.columns) * th))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    sheet.save(args.out, quality=88) if args.out.suffix.lower() in (".jpg", ".jpeg") else sheet.save(args.out)
+    if args.out.suffix.lower() in (".jpg", ".jpeg"):
+        sheet.save(args.out, quality=88)
+    else:
+        sheet.save(args.out)
     print(args.out)
     return 0
 
