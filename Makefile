@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-ablation movenet-ablation-full recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions leap recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-ablation movenet-ablation-full recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -104,6 +104,14 @@ recovery-data-motions: $(STAMP)
 	test -f out/motions_test/007_12.npz || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_test --fps 30 --clips 007_12 005_20
 	test -f out/motions_train/summary.csv || $(BIN)/blsm mocap import $(MOCAP) --out out/motions_train --fps 30 --workers 2 \
 		--clips $$(ls $(MOCAP)/*.bvh | xargs -n1 basename | sed 's/\.bvh$$//' | grep -v -e '^007_12$$' -e '^005_20$$')
+
+# LEAP on BLSM (docs/leap.md, issue 55): the CPU run, its cycle-distance ablation (stage 1 shared)
+# and the measurements into docs/figures (about 1.5 hours on 2 cores; each run resumes).
+leap: recovery-data-motions
+	$(BIN)/blsm leap train configs/leap/cpu.yaml --out out/leap/cpu --resume
+	$(BIN)/blsm leap train configs/leap/cpu_nocycle.yaml --out out/leap/cpu_nocycle --resume
+	$(BIN)/python experiments/leap/measure.py out/leap/cpu out/leap/cpu_nocycle --chamfer 20 --json docs/figures/leap.json \
+		--figure docs/figures/leap_bodies.png --curve docs/figures/leap_curve.png
 
 # The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation
 # and the three 10k-image training sets under out/data (about 55 minutes on 2 cores; resumable).

@@ -21,6 +21,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     from blsm.leap.train import train
 
     cfg = load_config(args.config)
+    if args.occupancy_steps is not None:
+        import dataclasses
+
+        cfg = dataclasses.replace(cfg, occupancy_steps=args.occupancy_steps)
     print(f"[leap] checkpoint {train(cfg, Path(args.out), resume=args.resume)}")
     return 0
 
@@ -40,13 +44,23 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise ValueError(f"{run}: no LEAP run here (last.pt and data.npz)")
     ck = torch.load(ck_path, weights_only=False)
     cfg = config_from_dict(LeapTrainConfig, ck["config"], str(ck_path))
-    leap = Leap(blsm.load(), cfg.net)
+    model = blsm.load()
+    leap = Leap(model, cfg.net)
     leap.load_state_dict(ck["model"])
     with np.load(run / "data.npz") as d:
         data = {k: d[k] for k in d.files}
     res = {"step": ck["step"], "cycle": cfg.net.cycle, "held_out_clips": [str(c) for c in data["held_out_clips"]]}
     for split in ("unseen_poses", "unseen_subjects"):
         res[split] = evaluate(leap, data, split)
+        if args.chamfer:
+            from blsm.leap.mesh import chamfer, grid_box, reconstruct, true_meshes
+
+            n = min(args.chamfer, len(data[f"{split}_B"]))
+            verts = true_meshes(model, data[f"{split}_B"][:n], data[f"{split}_subject"][:n])
+            faces, rng = model.faces.numpy(), np.random.default_rng(0)
+            cd = [chamfer(reconstruct(leap, data[f"{split}_B"][i], *grid_box(verts[i]), args.res), (verts[i], faces),
+                          10000, rng) for i in range(n)]  # fmt: skip
+            res[split].update({"chamfer_mm": round(1000.0 * float(np.mean(cd)), 2), "chamfer_bodies": n, "grid": args.res})
     text = json.dumps(res, indent=1)
     print(text)
     (run / "metrics.json").write_text(text + "\n")
@@ -60,7 +74,11 @@ def add_parser(sub: Any) -> None:
     t.add_argument("config", help="configs/leap/*.yaml")
     t.add_argument("--out", required=True)
     t.add_argument("--resume", action="store_true")
+    t.add_argument("--occupancy-steps", type=int, help="stage 2's steps instead of the config's (with --resume: extends a run)")
     t.set_defaults(func=cmd_train)
     e = lsub.add_parser("evaluate", help="IoU on unseen poses and unseen subjects into RUN/metrics.json")
     e.add_argument("run")
+    e.add_argument("--chamfer", type=int, default=0, metavar="N",
+                   help="also the Chamfer distance of the marching-cubes surface on each test set's first N bodies")
+    e.add_argument("--res", type=int, default=64, help="the grid's nodes per axis for --chamfer (default 64)")
     e.set_defaults(func=cmd_evaluate)

@@ -79,8 +79,8 @@ def draw_bodies(model: torch.nn.Module, clips: dict[str, tuple[np.ndarray, np.nd
 def body_points(model: torch.nn.Module, vertices: np.ndarray, template: np.ndarray, n: int,
                 rng: np.random.Generator) -> dict[str, np.ndarray]:
     """One body's query points (module docstring): ``x`` (n, 3) posed, ``occ`` (n,) 1 inside,
-    ``w`` (n, K) the nearest posed vertex's weights; ``xc`` (n, 3) canonical points and ``wc``
-    (n, K) the nearest template vertex's weights."""
+    ``w`` (n, K) the nearest posed vertex's weights; ``xc`` (n, 3) canonical points, ``wc``
+    (n, K) the nearest template vertex's weights and ``occ_c`` (n,) 1 inside the template."""
     from scipy.spatial import cKDTree
 
     faces = model.faces.numpy()
@@ -90,5 +90,17 @@ def body_points(model: torch.nn.Module, vertices: np.ndarray, template: np.ndarr
     w = weights[cKDTree(vertices).query(x)[1]]
     xc = occupancy.sample_points(template, faces, n // 2, n - n // 2, rng)
     wc = weights[cKDTree(template).query(xc)[1]]
+    occ_c = occupancy.inside(xc, template, faces)
     f32 = np.float32
-    return {"x": x.astype(f32), "occ": occ.astype(f32), "w": w.astype(f32), "xc": xc.astype(f32), "wc": wc.astype(f32)}
+    return {"x": x.astype(f32), "occ": occ.astype(f32), "w": w.astype(f32), "xc": xc.astype(f32), "wc": wc.astype(f32),
+            "occ_c": occ_c.astype(f32)}
+
+
+def canonical_occupancy(model: torch.nn.Module, subjects: np.ndarray, xc: np.ndarray) -> np.ndarray:
+    """(n, m) 1 where the canonical points ``xc`` (n, m, 3) are inside their subjects' templates
+    (the ``occ_c`` of :func:`body_points`, for a data file made before it was kept)."""
+    rows = torch.as_tensor(np.asarray(subjects), dtype=torch.long)
+    with torch.no_grad():
+        templates = model(bone=model.population_bone[rows], shape=model.population_shape[rows]).template.numpy()
+    faces = model.faces.numpy()
+    return np.stack([occupancy.inside(xc[i], templates[i], faces) for i in range(len(xc))]).astype(np.float32)

@@ -22,7 +22,10 @@ the skeleton (:func:`bone_inputs`).
   canonical point conditioned on ``(z_x, d_x)`` and gives the occupancy probability (Eq. 14).
 
 Sizes follow the supplement (B.1-B.5) scaled for 2 CPU cores by :class:`LeapConfig`; the paper's are
-the ``paper`` preset.
+the ``paper`` preset. Two input choices differ from the paper, both switchable and measured in
+docs/leap.md: every point input is given with sin/cos features (``fourier``), and the inverse LBS
+network reads the point in every bone's frame (``bone_frames``). Without them the networks learnt
+the nearest-vertex weights several times slower on 2 cores.
 """
 
 from __future__ import annotations
@@ -47,10 +50,22 @@ class LeapConfig:
     blocks: int = 3  # ONet and LBS residual blocks (the supplement: 5)
     mesh_points: int = 512  # template vertices the PointNets see (a fixed subset)
     cycle: bool = True  # the cycle-distance feature (Eq. 13; off: the Fig. 4 ablation)
+    fourier: int = 4  # octaves of sin/cos features of every point input (0: raw coordinates, as the paper)
+    bone_frames: bool = True  # the inverse LBS network reads x in every bone's frame, B_k^-1 x (else x)
 
     @staticmethod
     def paper() -> LeapConfig:
         return LeapConfig(shape_dim=128, lbs_feature=100, pose_feature=80, width=256, blocks=5)
+
+
+def encode(x: torch.Tensor, octaves: int) -> torch.Tensor:
+    """``x`` (..., C) with ``sin`` and ``cos`` of ``2^i pi x``, ``i < octaves`` (..., C (1 + 2 octaves)):
+    a ReLU network on raw coordinates learns the skinning weights' sharp borders slowly (measured in
+    docs/leap.md); these features are NeRF's positional encoding."""
+    if octaves == 0:
+        return x
+    a = x[..., None] * (torch.pi * 2.0 ** torch.arange(octaves, dtype=x.dtype, device=x.device))
+    return torch.cat([x, a.sin().flatten(-2), a.cos().flatten(-2)], -1)
 
 
 class PointNet(nn.Module):
@@ -126,16 +141,16 @@ class ConditionedMLP(nn.Module):
     """``f(x | c)``: the point and a per-body condition, residual blocks, one output layer (the LBS
     networks of Fig. B.3 with ``cond_points=False``; ONet with per-point conditions)."""
 
-    def __init__(self, cond: int, out: int, width: int, blocks: int, cbn: bool) -> None:
+    def __init__(self, cond: int, out: int, width: int, blocks: int, cbn: bool, inp: int = 3) -> None:
         super().__init__()
         self.cbn = cbn
-        self.inp = nn.Linear(3 if cbn else 3 + cond, width)
+        self.inp = nn.Linear(inp if cbn else inp + cond, width)
         self.blocks = nn.ModuleList([ResBlock(width, cond if cbn else 0) for _ in range(blocks)])
         self.out = nn.Linear(width, out)
         self.act = nn.ReLU()
 
     def forward(self, x: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-        """``x`` (N, 3) points, ``c`` (N, cond) their conditions; (N, out)."""
+        """``x`` (N, inp) points' features, ``c`` (N, cond) their conditions; (N, out)."""
         h = self.inp(x if self.cbn else torch.cat([x, c], -1))
         for blk in self.blocks:
             h = blk(h, c if self.cbn else None)
@@ -191,10 +206,12 @@ class Leap(nn.Module):
         self.fwd_rest, self.fwd_posed = PointNet(cfg.lbs_feature), PointNet(cfg.lbs_feature)
         self.inv_rest, self.inv_posed = PointNet(cfg.lbs_feature), PointNet(cfg.lbs_feature)
         self.inv_pose = nn.Linear(k * 12, cfg.pose_feature)
-        self.inverse = ConditionedMLP(2 * cfg.lbs_feature + cfg.pose_feature, k, cfg.width, cfg.blocks, cbn=False)
-        self.forward_lbs = ConditionedMLP(2 * cfg.lbs_feature, k, cfg.width, cfg.blocks, cbn=False)
+        enc = 1 + 2 * cfg.fourier  # features per coordinate (encode)
+        inv_in = 3 * enc * (k if cfg.bone_frames else 1)
+        self.inverse = ConditionedMLP(2 * cfg.lbs_feature + cfg.pose_feature, k, cfg.width, cfg.blocks, cbn=False, inp=inv_in)
+        self.forward_lbs = ConditionedMLP(2 * cfg.lbs_feature, k, cfg.width, cfg.blocks, cbn=False, inp=3 * enc)
         # The occupancy network (Fig. B.2): conditioned on z_x and d_x.
-        self.onet = ConditionedMLP(cfg.point_code + 1, 1, cfg.width, cfg.blocks, cbn=True)
+        self.onet = ConditionedMLP(cfg.point_code + 1, 1, cfg.width, cfg.blocks, cbn=True, inp=3 * enc)
 
     # -- the body's features -------------------------------------------------------------------
 
@@ -235,37 +252,63 @@ class Leap(nn.Module):
 
     # -- points ----------------------------------------------------------------------------------
 
-    def inverse_weights(self, x: torch.Tensor, c_inv: torch.Tensor) -> torch.Tensor:
-        """(n, N, K) ``w_x``: the inverse LBS network's weights for posed points ``x`` (n, N, 3)."""
+    def inverse_logits(self, x: torch.Tensor, B: torch.Tensor, c_inv: torch.Tensor) -> torch.Tensor:
+        """(n, N, K) the inverse LBS network's logits for posed points ``x`` (n, N, 3) of bodies ``B``
+        (n, K, 3, 4); with ``cfg.bone_frames`` it reads ``B_k^-1 x`` for every bone ``k``, the
+        canonical point each bone alone would give (Eq. 10 with one-hot weights)."""
         n, m, _ = x.shape
+        if self.cfg.bone_frames:
+            lin, t = B[:, None, :, :, :3], B[:, None, :, :, 3]
+            x = torch.linalg.solve(lin, (x[:, :, None] - t)[..., None])[..., 0]  # (n, N, K, 3)
+        f = encode(x, self.cfg.fourier).reshape(n * m, -1)
         c = c_inv[:, None].expand(-1, m, -1).reshape(n * m, -1)
-        return self.inverse(x.reshape(-1, 3), c).softmax(-1).reshape(n, m, -1)
+        return self.inverse(f, c).reshape(n, m, -1)
+
+    def inverse_weights(self, x: torch.Tensor, B: torch.Tensor, c_inv: torch.Tensor) -> torch.Tensor:
+        """(n, N, K) ``w_x``: the inverse LBS network's weights for posed points ``x`` (n, N, 3)."""
+        return self.inverse_logits(x, B, c_inv).softmax(-1)
+
+    def forward_logits(self, xc: torch.Tensor, c_fwd: torch.Tensor) -> torch.Tensor:
+        """(n, N, K) the forward LBS network's logits for canonical points ``xc`` (n, N, 3)."""
+        n, m, _ = xc.shape
+        c = c_fwd[:, None].expand(-1, m, -1).reshape(n * m, -1)
+        return self.forward_lbs(encode(xc.reshape(-1, 3), self.cfg.fourier), c).reshape(n, m, -1)
 
     def forward_weights(self, xc: torch.Tensor, c_fwd: torch.Tensor) -> torch.Tensor:
         """(n, N, K) the forward LBS network's weights for canonical points ``xc`` (n, N, 3)."""
-        n, m, _ = xc.shape
-        c = c_fwd[:, None].expand(-1, m, -1).reshape(n * m, -1)
-        return self.forward_lbs(xc.reshape(-1, 3), c).softmax(-1).reshape(n, m, -1)
+        return self.forward_logits(xc, c_fwd).softmax(-1)
 
-    def forward(self, B: torch.Tensor, x: torch.Tensor, weights: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def forward(self, B: torch.Tensor, x: torch.Tensor, weights: torch.Tensor | None = None,
+                canonical: tuple[torch.Tensor, torch.Tensor] | None = None, lbs_grad: bool = True) -> dict[str, torch.Tensor]:
         """Occupancy logits of posed points ``x`` (n, N, 3) for bodies ``B`` (n, K, 3, 4).
 
         ``weights`` (n, N, K): given weights instead of the inverse network's (the deterministic
-        nearest-vertex weights of Sec. 6.1's ablation). Returns ``logits`` (n, N), the inverse and
-        forward weights, the canonical points ``xc`` (Eq. 10), the cycle's points (Eq. 12) and the
-        cycle distance ``d`` (Eq. 13; zeros when ``cfg.cycle`` is off)."""
+        nearest-vertex weights of Sec. 6.1's ablation). ``canonical``: points drawn in the canonical
+        space itself, ``(xc (n, M, 3), w (n, M, K))`` with their nearest vertices' weights and a
+        cycle distance of 0, scored in the same ONet pass (B.2's occupancy training); their logits
+        follow the posed points'. ``lbs_grad=False``: no gradient through the LBS networks (fixed
+        in stage 2; keep it for gradients w.r.t. the points, Eq. 20). Returns ``logits`` (n, N [+ M]),
+        the inverse and forward weights, the canonical points ``xc`` (Eq. 10), the cycle's points
+        (Eq. 12) and the cycle distance ``d`` (Eq. 13; zeros when ``cfg.cycle`` is off)."""
         n, m, _ = x.shape
         body = self.body(B)
-        c_inv, c_fwd = self.lbs_conditions(body)
-        w = self.inverse_weights(x, c_inv) if weights is None else weights
-        Bp = B[:, None].expand(-1, m, -1, -1, -1).reshape(n * m, *B.shape[1:])
-        xc = blend_inverse(w.reshape(n * m, -1), Bp, x.reshape(-1, 3)).reshape(n, m, 3)  # Eq. 10
-        zx = torch.einsum("nmk,nkc->nmc", w, self.codes(body))  # Eq. 11
-        if self.cfg.cycle:
-            wf = self.forward_weights(xc, c_fwd)
-            cyc = blend_forward(wf.reshape(n * m, -1), Bp, xc.reshape(-1, 3)).reshape(n, m, 3)  # Eq. 12
-            d = (w - wf).abs().sum(-1, keepdim=True)  # Eq. 13
-        else:
-            wf, cyc, d = w, x, torch.zeros_like(x[..., :1])
-        logits = self.onet(xc.reshape(-1, 3), torch.cat([zx, d], -1).reshape(n * m, -1)).reshape(n, m)
+        with torch.set_grad_enabled(lbs_grad and torch.is_grad_enabled()):
+            c_inv, c_fwd = self.lbs_conditions(body)
+            w = self.inverse_weights(x, B, c_inv) if weights is None else weights
+            Bp = B[:, None].expand(-1, m, -1, -1, -1).reshape(n * m, *B.shape[1:])
+            xc = blend_inverse(w.reshape(n * m, -1), Bp, x.reshape(-1, 3)).reshape(n, m, 3)  # Eq. 10
+            if self.cfg.cycle:
+                wf = self.forward_weights(xc, c_fwd)
+                cyc = blend_forward(wf.reshape(n * m, -1), Bp, xc.reshape(-1, 3)).reshape(n, m, 3)  # Eq. 12
+                d = (w - wf).abs().sum(-1, keepdim=True)  # Eq. 13
+            else:
+                wf, cyc, d = w, x, torch.zeros_like(x[..., :1])
+        pts, ws, ds = xc, w, d
+        if canonical is not None:
+            pts, ws = torch.cat([xc, canonical[0]], 1), torch.cat([w, canonical[1]], 1)
+            ds = torch.cat([d, torch.zeros_like(canonical[0][..., :1])], 1)
+        zx = torch.einsum("nmk,nkc->nmc", ws, self.codes(body))  # Eq. 11
+        total = pts.shape[1]
+        cond = torch.cat([zx, ds], -1).reshape(n * total, -1)
+        logits = self.onet(encode(pts.reshape(-1, 3), self.cfg.fourier), cond).reshape(n, total)
         return {"logits": logits, "w_inv": w, "w_fwd": wf, "xc": xc, "x_cycle": cyc, "d": d[..., 0]}
