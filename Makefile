@@ -110,7 +110,7 @@ recovery-data-motions: $(STAMP)
 leap: recovery-data-motions
 	$(BIN)/blsm leap train configs/leap/cpu.yaml --out out/leap/cpu --resume
 	$(BIN)/blsm leap train configs/leap/cpu_nocycle.yaml --out out/leap/cpu_nocycle --resume
-	$(BIN)/python experiments/leap/measure.py out/leap/cpu out/leap/cpu_nocycle --chamfer 20 --json docs/figures/leap.json \
+	$(BIN)/python experiments/leap/measure.py out/leap/cpu out/leap/cpu_nocycle --chamfer 10 --res 64 --json docs/figures/leap.json \
 		--figure docs/figures/leap_bodies.png --curve docs/figures/leap_curve.png
 
 # The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation

@@ -42,8 +42,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     ck_path = run / "last.pt"
     if not ck_path.is_file() or not (run / "data.npz").is_file():
         raise ValueError(f"{run}: no LEAP run here (last.pt and data.npz)")
-    ck = torch.load(ck_path, weights_only=False)
-    cfg = config_from_dict(LeapTrainConfig, ck["config"], str(ck_path))
+    ck = torch.load(ck_path, weights_only=False, map_location="cpu")
+    cfg = config_from_dict(LeapTrainConfig, {**ck["config"], "device": "cpu"}, str(ck_path))  # evaluated here, on the CPU
     model = blsm.load()
     leap = Leap(model, cfg.net)
     leap.load_state_dict(ck["model"])

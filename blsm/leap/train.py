@@ -43,6 +43,7 @@ class LeapTrainConfig:
     canonical_points: int = 0  # of each body's batch_points, scored in the canonical space too (B.2)
     lbs_from: str = ""  # another run's last.pt: take its trained LBS networks and skip stage 1
     save_every: int = 250
+    device: str = "cpu"  # where the networks train ("cuda" on a lent GPU); the data stay in host memory
     eval_every: int = 0  # the test sets' IoU every this many steps into the history (0: never), a curve
     seed: int = 0
     net: LeapConfig = field(default_factory=LeapConfig)
@@ -115,13 +116,15 @@ def _write(path: Path, data: dict[str, np.ndarray]) -> None:
     tmp.replace(path)
 
 
-def _batch(data: dict[str, np.ndarray], split: str, rng: np.random.Generator, nb: int, npts: int) -> dict[str, torch.Tensor]:
+def _batch(data: dict[str, np.ndarray], split: str, rng: np.random.Generator, nb: int, npts: int,
+           device: str = "cpu") -> dict[str, torch.Tensor]:
     n, m = data[f"{split}_x"].shape[:2]
     bi = rng.integers(n, size=nb)
     pi = np.stack([rng.choice(m, npts, replace=False) for _ in range(nb)])
     take = lambda k: torch.from_numpy(data[f"{split}_{k}"][bi[:, None], pi])  # noqa: E731
-    return {"B": torch.from_numpy(data[f"{split}_B"][bi]), "x": take("x"), "occ": take("occ"), "w": take("w"),
-            "xc": take("xc"), "wc": take("wc"), "occ_c": take("occ_c")}
+    b = {"B": torch.from_numpy(data[f"{split}_B"][bi]), "x": take("x"), "occ": take("occ"), "w": take("w"),
+         "xc": take("xc"), "wc": take("wc"), "occ_c": take("occ_c")}
+    return {k: v.to(device) for k, v in b.items()}
 
 
 def lbs_loss(leap: Leap, b: dict[str, torch.Tensor], kind: str = "ce") -> torch.Tensor:
@@ -165,16 +168,18 @@ def train(cfg: LeapTrainConfig, out: Path, resume: bool = False, log: Any = prin
     torch.manual_seed(cfg.seed)
     model = blsm.load()
     data = make_data(model, cfg, out / "data.npz", log)
-    leap = Leap(model, cfg.net)
+    leap = Leap(model, cfg.net).to(cfg.device)
     lbs = [p for n in LBS_PARTS for p in getattr(leap, n).parameters()]
     rest = [p for n, m in leap.named_children() if n not in LBS_PARTS for p in m.parameters()] + [leap.project, leap.project_bias]
     opt_lbs, opt_occ = torch.optim.Adam(lbs, cfg.lr), torch.optim.Adam(rest, cfg.lr)
     step, history = 0, []
     if resume and last.exists():
-        ck = torch.load(last, weights_only=False)
+        ck = torch.load(last, weights_only=False, map_location=cfg.device)
         mine = json.loads(json.dumps(asdict(cfg)))
-        longer = mine["occupancy_steps"] > ck["config"]["occupancy_steps"]  # a longer stage 2 extends the run
-        if {**ck["config"], "occupancy_steps": mine["occupancy_steps"] if longer else ck["config"]["occupancy_steps"]} != mine:
+        # Keys added since the run was made hold their defaults; the device may change.
+        theirs = {**json.loads(json.dumps(asdict(LeapTrainConfig()))), **ck["config"], "device": cfg.device}
+        longer = mine["occupancy_steps"] > theirs["occupancy_steps"]  # a longer stage 2 extends the run
+        if {**theirs, "occupancy_steps": mine["occupancy_steps"] if longer else theirs["occupancy_steps"]} != mine:
             raise ValueError(f"{last}: made with another config; resume it with that one (only a longer occupancy_steps may differ)")
         if longer:
             log(f"[leap] {last}: stage 2 extended from {ck['config']['occupancy_steps']} to {cfg.occupancy_steps} steps")
@@ -183,8 +188,8 @@ def train(cfg: LeapTrainConfig, out: Path, resume: bool = False, log: Any = prin
         opt_occ.load_state_dict(ck["opt_occ"])
         step, history = ck["step"], ck["history"]
     elif cfg.lbs_from:  # stage 1 from another run (the same LBS networks): the ablations share it
-        ck = torch.load(cfg.lbs_from, weights_only=False)
-        free = ("occupancy_steps", "occupancy_loss", "canonical_points", "lbs_from", "eval_every", "save_every")  # stage 2's own
+        ck = torch.load(cfg.lbs_from, weights_only=False, map_location=cfg.device)
+        free = ("occupancy_steps", "occupancy_loss", "canonical_points", "lbs_from", "eval_every", "save_every", "device")  # stage 2's own
         mine, theirs = json.loads(json.dumps(asdict(cfg))), ck["config"]
         differ = [k for k in mine if k not in free and k != "net" and mine[k] != theirs.get(k)]
         differ += [f"net.{k}" for k in mine["net"] if k != "cycle" and mine["net"][k] != theirs["net"].get(k)]
@@ -206,7 +211,7 @@ def train(cfg: LeapTrainConfig, out: Path, resume: bool = False, log: Any = prin
         if stage == "occupancy":  # the LBS networks fixed: deterministic functions (Sec. 4.3)
             for n in LBS_PARTS:
                 getattr(leap, n).eval()
-        b = _batch(data, "train", rng, cfg.batch_bodies, cfg.batch_points)
+        b = _batch(data, "train", rng, cfg.batch_bodies, cfg.batch_points, cfg.device)
         opt = opt_lbs if stage == "lbs" else opt_occ
         loss = lbs_loss(leap, b, cfg.lbs_loss) if stage == "lbs" else occupancy_loss(leap, b, cfg.occupancy_loss, cfg.canonical_points)
         opt.zero_grad()
@@ -243,23 +248,24 @@ def evaluate(leap: Leap, data: dict[str, np.ndarray], split: str, chunk: int = 8
     volumetric IoU, as ONet's); ``iou_near`` scores the points drawn around the surface
     (N(0, 1 cm) off it), a much harder test of the surface itself; ``iou_all`` both halves."""
     leap.eval()
+    dev = next(leap.parameters()).device
+    get = lambda k, s: torch.from_numpy(data[f"{split}_{k}"][s : s + chunk]).to(dev)  # noqa: E731
     ious: dict[str, list[float]] = {"iou": [], "iou_near": [], "iou_all": []}
     l1_inv, l1_fwd = [], []
     m = data[f"{split}_x"].shape[1]
     halves = {"iou_near": slice(0, m // 2), "iou": slice(m // 2, m), "iou_all": slice(0, m)}  # near first (sample_points)
     n = len(data[f"{split}_B"])
     for s in range(0, n, chunk):
-        B = torch.from_numpy(data[f"{split}_B"][s : s + chunk])
-        x = torch.from_numpy(data[f"{split}_x"][s : s + chunk])
+        B, x = get("B", s), get("x", s)
         r = leap(B, x)
         pred = r["logits"] >= 0.0
-        true = torch.from_numpy(data[f"{split}_occ"][s : s + chunk]) > 0.5
+        true = get("occ", s) > 0.5
         for key, sl in halves.items():
             inter, union = (pred & true)[:, sl].sum(1).float(), (pred | true)[:, sl].sum(1).float()
             ious[key] += (100.0 * inter / union.clamp(min=1)).tolist()
-        l1_inv += (r["w_inv"] - torch.from_numpy(data[f"{split}_w"][s : s + chunk])).abs().sum(-1).mean(1).tolist()
+        l1_inv += (r["w_inv"] - get("w", s)).abs().sum(-1).mean(1).tolist()
         body = leap.body(B)
-        wf = leap.forward_weights(torch.from_numpy(data[f"{split}_xc"][s : s + chunk]), leap.lbs_conditions(body)[1])
-        l1_fwd += (wf - torch.from_numpy(data[f"{split}_wc"][s : s + chunk])).abs().sum(-1).mean(1).tolist()
+        wf = leap.forward_weights(get("xc", s), leap.lbs_conditions(body)[1])
+        l1_fwd += (wf - get("wc", s)).abs().sum(-1).mean(1).tolist()
     return {**{k: round(float(np.mean(v)), 2) for k, v in ious.items()}, "l1_inv": round(float(np.mean(l1_inv)), 4),
             "l1_fwd": round(float(np.mean(l1_fwd)), 4), "bodies": n}

@@ -25,11 +25,20 @@ from blsm.leap.model import Leap
 from blsm.leap.train import LeapTrainConfig, evaluate
 
 SPLITS = ("unseen_poses", "unseen_subjects")
+ABOUT = {
+    "split": "unseen poses: training subjects (9 of every 10 population rows) in held-out clips (every 8th of the imported "
+             "CMU library, sorted); unseen subjects: every 10th population row in training clips",
+    "iou_protocol": "iou: the paper's (the authors' evaluation scores the uniform points only: uniform in the body's box grown "
+                    "by 10 %); iou_near: the points within N(0, 1 cm^2) of the surface; iou_all: both; mean over bodies; ground "
+                    "truth the exact winding number",
+    "chamfer": "symmetric mean surface distance (mm) between 10,000 points on each surface, LEAP's by marching cubes of the "
+               "0.5 level on a grid over the body's grown box",
+}
 
 
 def load_run(run: Path, model: torch.nn.Module) -> tuple[Leap, LeapTrainConfig, dict]:
-    ck = torch.load(run / "last.pt", weights_only=False)
-    cfg = config_from_dict(LeapTrainConfig, ck["config"], str(run / "last.pt"))
+    ck = torch.load(run / "last.pt", weights_only=False, map_location="cpu")
+    cfg = config_from_dict(LeapTrainConfig, {**ck["config"], "device": "cpu"}, str(run / "last.pt"))
     leap = Leap(model, cfg.net)
     leap.load_state_dict(ck["model"])
     return leap.eval(), cfg, ck
@@ -136,10 +145,10 @@ def curve(histories: dict[str, list], path: Path) -> None:
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
     for name, hist in histories.items():
-        pts = [h for h in hist if "eval" in h]
+        pts = [h for h in hist if "eval" in h and h["stage"] == "occupancy"]  # stage 1 leaves ONet untrained
         for split, ls in zip(SPLITS, ("-", "--")):
             ax.plot([h["step"] for h in pts], [h["eval"][split]["iou"] for h in pts], ls, marker="o", label=f"{name}, {split.replace('_', ' ')}")
-    ax.set_xlabel("step (stage 1, then stage 2)")
+    ax.set_xlabel("step (stage 2 starts after stage 1's 3000)")
     ax.set_ylabel("IoU (%), uniform points")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -158,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     model = blsm.load()
     doc: dict = {"command": "python experiments/leap/measure.py " + " ".join(str(r) for r in args.runs)
-                 + f" --chamfer {args.chamfer} --res {args.res}", "runs": {}}
+                 + f" --chamfer {args.chamfer} --res {args.res}", **ABOUT, "runs": {}}
     histories = {}
     for i, run in enumerate(args.runs):
         leap, cfg, ck = load_run(run, model)

@@ -234,3 +234,14 @@ def test_losses_and_config_checks():
         LeapTrainConfig(occupancy_loss="hinge")
     with pytest.raises(ValueError, match="eval_every"):
         LeapTrainConfig(eval_every=-1)
+
+
+@pytest.mark.parametrize("name", ["cpu", "cpu_nocycle", "gpu"])
+def test_shipped_configs_parse(name):
+    from pathlib import Path
+
+    from blsm.leap.cli import load_config
+
+    cfg = load_config(Path(__file__).resolve().parents[2] / "configs" / "leap" / f"{name}.yaml")
+    assert cfg.net.cycle == (name != "cpu_nocycle") and cfg.device == ("cuda" if name == "gpu" else "cpu")
+    assert bool(cfg.lbs_from) == (name == "cpu_nocycle")
