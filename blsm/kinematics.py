@@ -106,6 +106,26 @@ def local_scales(b: torch.Tensor, parents: torch.Tensor) -> torch.Tensor:
     return b / denom
 
 
+def rest_joints(b: torch.Tensor, heads: torch.Tensor, parents: torch.Tensor, chain: torch.Tensor) -> torch.Tensor:
+    """The bind-pose joints of a person with global bone scales ``b`` (scaled bones, no rotation).
+
+    Each bone's offset to its parent scales with the parent's ``b``, so a joint is the root plus the
+    scaled offsets along its chain.
+
+    Args:
+        b: (B, J) global bone scales.
+        heads: (J, 3) the template's joint positions.
+        parents: (J,) long, parent index of each bone, -1 for the root.
+        chain: (J, J) ``chain[j, k] = 1`` for every non-root bone ``k`` on the path root -> ``j``.
+
+    Returns:
+        (B, J, 3) rest joints.
+    """
+    par = parents.clamp(min=0)
+    scaled = b[:, par, None] * (heads - heads[par])
+    return heads[0] + torch.einsum("jk,bkc->bjc", chain, scaled)
+
+
 @functools.lru_cache(maxsize=32)
 def tree_levels(parents: tuple[int, ...]) -> list[tuple[list[int], list[int]]]:
     """Bones grouped by depth: [(indices, parent indices)], the first level being the root."""

@@ -21,6 +21,7 @@ from blsm.kinematics import (
     forward_kinematics,
     joint_rotations,
     local_scales,
+    rest_joints,
     tree_levels,
 )
 from blsm.lbs import blend_shapes, linear_blend_skinning, linear_shape
@@ -305,11 +306,7 @@ class BLSM(nn.Module):
         vertices = linear_blend_skinning(template, self.weights, linear, offset)  # Eq. 12
         keypoints = self._keypoints(vertices, joints)
 
-        # Bind pose of this person (scaled bones, no rotation): each bone's offset to a child
-        # scales with the bone's b, so the joints are the root plus scaled offsets along the chain.
-        par = self.parents_t.clamp(min=0)
-        scaled = b[:, par, None] * (self.heads - self.heads[par])  # (B, J, 3)
-        rest_joints = self.heads[0] + torch.einsum("jk,bkc->bjc", self.chain, scaled)
+        rest = rest_joints(b, self.heads, self.parents_t, self.chain)  # bind pose of this person
         return BLSMOutput(
             vertices=vertices,
             joints=joints,
@@ -317,7 +314,7 @@ class BLSM(nn.Module):
             angles=theta,
             bone_scales=b,
             template=template,
-            rest_joints=rest_joints,
+            rest_joints=rest,
             skinning_transforms=torch.cat([linear, offset[..., None]], dim=-1),
         )
 

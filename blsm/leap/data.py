@@ -96,11 +96,16 @@ def body_points(model: torch.nn.Module, vertices: np.ndarray, template: np.ndarr
             "occ_c": occ_c.astype(f32)}
 
 
+def subject_templates(model: torch.nn.Module, subjects: np.ndarray) -> torch.Tensor:
+    """(n, V, 3) the rest templates of the population rows ``subjects`` (n,)."""
+    rows = torch.as_tensor(np.asarray(subjects), dtype=torch.long)
+    with torch.no_grad():
+        return model(bone=model.population_bone[rows], shape=model.population_shape[rows]).template
+
+
 def canonical_occupancy(model: torch.nn.Module, subjects: np.ndarray, xc: np.ndarray) -> np.ndarray:
     """(n, m) 1 where the canonical points ``xc`` (n, m, 3) are inside their subjects' templates
     (the ``occ_c`` of :func:`body_points`, for a data file made before it was kept)."""
-    rows = torch.as_tensor(np.asarray(subjects), dtype=torch.long)
-    with torch.no_grad():
-        templates = model(bone=model.population_bone[rows], shape=model.population_shape[rows]).template.numpy()
+    templates = subject_templates(model, subjects).numpy()
     faces = model.faces.numpy()
     return np.stack([occupancy.inside(xc[i], templates[i], faces) for i in range(len(xc))]).astype(np.float32)

@@ -13,14 +13,14 @@ import numpy as np
 import torch
 
 from blsm import occupancy
+from blsm.leap.data import subject_templates
 
 
 def true_meshes(model: torch.nn.Module, B: np.ndarray, subjects: np.ndarray) -> np.ndarray:
     """(n, V, 3) the posed BLSM vertices of bodies with transforms ``B`` (n, K, 3, 4) and population
     rows ``subjects`` (n,)."""
-    rows = torch.as_tensor(np.asarray(subjects), dtype=torch.long)
+    rest = subject_templates(model, subjects)
     with torch.no_grad():
-        rest = model(bone=model.population_bone[rows], shape=model.population_shape[rows]).template
         Bt = torch.as_tensor(B, dtype=rest.dtype)
         posed = torch.einsum("vk,bkij,bvj->bvi", model.weights, Bt[..., :3], rest)
         posed = posed + torch.einsum("vk,bki->bvi", model.weights, Bt[..., 3])

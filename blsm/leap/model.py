@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from blsm.kinematics import rest_joints
+
 
 @dataclass(frozen=True)
 class LeapConfig:
@@ -225,8 +227,7 @@ class Leap(nn.Module):
         R = lin / b[..., None, None]
         par = self.parents_t.clamp(min=0)
         rel = torch.where((self.parents_t < 0)[None, :, None, None], R, R[:, par].transpose(-1, -2) @ R)
-        scaled = b[:, par, None] * (self.heads - self.heads[par])
-        joints = self.heads[0] + torch.einsum("jk,bkc->bjc", self.chain, scaled)  # rest joints (BLSM forward)
+        joints = rest_joints(b, self.heads, self.parents_t, self.chain)  # as BLSM's forward
         lengths = (joints - joints[:, par]).norm(dim=-1) * (self.parents_t >= 0)
         # Eq. 4 inverted (Eqs. 5-6 for BLSM): the bone coefficients whose scales are closest.
         coeffs = torch.linalg.lstsq(self.bone_basis.T.expand(len(b), -1, -1), (b - self.bone_mean)[..., None]).solution[..., 0]
