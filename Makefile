@@ -114,7 +114,8 @@ leap: recovery-data-motions
 		--figure docs/figures/leap_bodies.png --curve docs/figures/leap_curve.png
 
 # The recovery datasets (docs/recovery.md, "Split"): the held-out test clips, then test, validation
-# and the three 10k-image training sets under out/data (about 55 minutes on 2 cores; resumable).
+# and the three 10k-image training sets under out/data (about 5 hours on 2 cores, about 1.5 hours a
+# training set, measured 2026-12-06; resumable).
 recovery-data: recovery-data-motions
 	$(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume
 	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
@@ -138,15 +139,18 @@ recovery-data-after: $(STAMP)
 	for s in test val train_hdri train_sky train_mocap; do \
 		$(BIN)/synth generate configs/synth/$$s.yaml --out out/data_after/$$s --workers 2 --resume || exit 1; done
 
-# The packaged HMR-BLSM (docs/recovery.md, "Results: the packaged model (2026-12-06)"): MoveNet Lightning
-# fixed, its keypoints the regressor's input, 800 steps on the data of movenet-data (about 45 minutes to
-# make, 20 to train on 2 cores; an interrupted run continues), evaluated on the held-out test set with
-# the 30-step test-time fit and exported with that fit as its default. Needs out/data/test (recovery-data).
-recovery-model: movenet-data
-	test -f out/data/test/manifest.json || ($(MAKE) recovery-data-motions && $(BIN)/synth generate configs/synth/test.yaml --out out/data/test --workers 2 --resume)
-	$(BIN)/recovery train configs/recovery/movenet/kp_frozen.yaml --out out/movenet/runs/kp_frozen --resume
-	$(BIN)/recovery evaluate out/movenet/runs/kp_frozen/last.pt out/data/test --out out/eval/hmr_blsm_default --fit 30
-	$(BIN)/recovery export out/movenet/runs/kp_frozen/last.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_default/metrics.json --fit 30
+# The packaged HMR-BLSM (docs/recovery.md, "Results: the packaged model (2026-12-07)"): MoveNet Lightning
+# fixed, its keypoints the regressor's input, 800 + 800 steps on the full training sets of recovery-data
+# and the seated postures of movenet-data (the kp_frozen and kp_frozen_long rows of movenet-ablation-full:
+# the same configs and run folders, so a finished row is reused), evaluated on the held-out test set with
+# the 30-step test-time fit and exported with that fit as its default. The data take about 5 hours on
+# 2 cores (about 1.5 hours a 10k-image training set), the two trainings about 15 minutes each; every step
+# continues where it stopped.
+recovery-model: recovery-data movenet-data
+	$(BIN)/recovery train configs/recovery/hmr_blsm_movenet.yaml --out out/movenet_full/runs/kp_frozen --resume
+	$(BIN)/recovery train configs/recovery/hmr_blsm_movenet_long.yaml --out out/movenet_full/runs/kp_frozen_long --resume
+	$(BIN)/recovery evaluate out/movenet_full/runs/kp_frozen_long/last.pt out/data/test --out out/eval/hmr_blsm_default --fit 30
+	$(BIN)/recovery export out/movenet_full/runs/kp_frozen_long/last.pt --out recovery/weights/hmr_blsm_default.pt --report out/eval/hmr_blsm_default/metrics.json --fit 30
 
 # The Lite0 HMR-BLSM packaged from 2026-11-27 to 2026-12-06 (docs/recovery.md): train the 9000-step network (about 143 minutes on 2 cores
 # measured on 2026-11-26; an interrupted run continues), evaluate it on the held-out test set and export
@@ -183,10 +187,12 @@ movenet-ablation: movenet-data transfer-setup
 
 # The same rows at the same budget on the full training sets of recovery-data (3 x 10k images; issue 52),
 # into out/movenet_full and docs/figures/transfer_movenet_full.json: about 6 hours on 2 cores after the
-# data (about 1.5 hours a set); resumable.
+# data (about 1.5 hours a set); resumable. Its crop caches (out/cache) take about 55 GB of disk: 18 GB
+# for the 192 px crops, about 34 GB for Thunder's 256 px.
 movenet-ablation-full: recovery-data movenet-data transfer-setup
 	$(BIN)/python experiments/transfer/movenet_rows.py --data full
-	$(BIN)/python experiments/transfer/movenet_rows.py --data full --rows kp_frozen thunder_kp_frozen --fit 30
+	$(BIN)/python experiments/transfer/movenet_rows.py --data full --rows kp_frozen kp_frozen_long kpimg_frozen thunder_kp_frozen --fit 30
+	$(BIN)/python experiments/transfer/movenet_table.py --doc docs/transfer.md
 
 # Thesis Table 4.3 on our data (docs/recovery_ablation.md): the mesh autoencoder against PCA, then
 # Configs A-F at equal budgets, evaluated on the test set. Needs recovery-data. Long (several hours on

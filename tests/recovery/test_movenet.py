@@ -470,6 +470,29 @@ def test_movenet_rows_on_the_full_sets_change_the_training_data_alone(tmp_path) 
         assert same == old, name
 
 
+def test_packaged_recipe_is_the_full_sets_rows(tmp_path) -> None:
+    """The configs of ``make recovery-model`` (configs/recovery/hmr_blsm_movenet{,_long}.yaml) are those
+    ``movenet_rows.py --data full`` writes for kp_frozen and kp_frozen_long, trained into the same folders,
+    so the packaged network is the measured row (``recovery train --resume`` checks the config)."""
+    import dataclasses
+    import importlib.util
+    from pathlib import Path
+
+    from recovery.config import load_config
+
+    root = Path(__file__).resolve().parents[2]
+    spec = importlib.util.spec_from_file_location("movenet_rows", root / "experiments/transfer/movenet_rows.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    train, out, _ = mod.DATA["full"]
+    make = (root / "Makefile").read_text().split("\nrecovery-model:")[1].split("\n\n")[0]
+    for config, row in (("hmr_blsm_movenet", "kp_frozen"), ("hmr_blsm_movenet_long", "kp_frozen_long")):
+        made = load_config(mod.row_config(row, train, tmp_path))
+        if made.train.init:  # the continuation starts from the full runs' kp_frozen, as the ablation's does
+            made = dataclasses.replace(made, train=dataclasses.replace(made.train, init=mod._from_root(out / "runs/kp_frozen/last.pt")))
+        assert load_config(root / f"configs/recovery/{config}.yaml") == made, config
+        assert f"train configs/recovery/{config}.yaml --out {mod._from_root(out / 'runs' / row)} --resume" in make, config
+
 def test_movenet_rows_share_one_budget_and_data() -> None:
     """Every trained row of experiments/transfer/movenet_rows.py has a config that parses, 800 steps of 32 on one
     data set and one validation set (docs/transfer.md, "A backbone that reads people in photographs");
