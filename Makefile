@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions leap recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-ablation movenet-ablation-full recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
+.PHONY: demo test bench identity model rig atoms motions video prior recovery-data recovery-data-motions leap recovery-data-before recovery-data-after recovery-model recovery-model-lite0 movenet-data movenet-postures movenet-ablation movenet-ablation-full recovery-ablation recovery-compare transfer-setup transfer-ablation clean-venv
 
 $(STAMP): pyproject.toml requirements.lock scripts/setup_env.sh
 	PY=$(PY) VENV=$(VENV) bash scripts/setup_env.sh
@@ -141,12 +141,12 @@ recovery-data-after: $(STAMP)
 
 # The packaged HMR-BLSM (docs/recovery.md, "Results: the packaged model (2026-12-07)"): MoveNet Lightning
 # fixed, its keypoints the regressor's input, 800 + 800 steps on the full training sets of recovery-data
-# and the seated postures of movenet-data (the kp_frozen and kp_frozen_long rows of movenet-ablation-full:
+# and the seated postures of movenet-postures (the kp_frozen and kp_frozen_long rows of movenet-ablation-full:
 # the same configs and run folders, so a finished row is reused), evaluated on the held-out test set with
 # the 30-step test-time fit and exported with that fit as its default. The data take about 5 hours on
 # 2 cores (about 1.5 hours a 10k-image training set), the two trainings about 15 minutes each; every step
 # continues where it stopped.
-recovery-model: recovery-data movenet-data
+recovery-model: recovery-data movenet-postures
 	$(BIN)/recovery train configs/recovery/hmr_blsm_movenet.yaml --out out/movenet_full/runs/kp_frozen --resume
 	$(BIN)/recovery train configs/recovery/hmr_blsm_movenet_long.yaml --out out/movenet_full/runs/kp_frozen_long --resume
 	$(BIN)/recovery evaluate out/movenet_full/runs/kp_frozen_long/last.pt out/data/test --out out/eval/hmr_blsm_default --fit 30
@@ -172,9 +172,12 @@ recovery-model-lite0: $(STAMP)
 # train_hdri.yaml (the current defaults) cut to 3000 images of 48 subjects and the garments-and-postures
 # data (seated people, arms over their range) cut to 800 images of 48 subjects (about 30 minutes on 2 cores;
 # resumable).
-movenet-data: $(STAMP)
+movenet-data: movenet-postures
 	$(BIN)/synth generate configs/synth/val.yaml --out out/data/val --workers 2 --resume
 	$(BIN)/synth generate configs/synth/train_hdri.yaml --out out/movenet/data/train_hdri --workers 2 --resume --num 3000 --set subjects.count=48
+
+# The garments-and-postures part of movenet-data alone (the packaged network's fourth training set).
+movenet-postures: $(STAMP)
 	$(BIN)/synth generate configs/synth/transfer/garments_postures.yaml --out out/movenet/data/garments_postures --workers 2 --resume --num 800 --set subjects.count=48
 
 # The MoveNet rows of docs/transfer.md (configs/recovery/movenet; experiments/transfer/movenet_rows.py): each row trained
