@@ -42,7 +42,9 @@ def _cells(e: dict | None) -> dict[str, float | None]:
 
 
 def _pair(a: float | None, b: float | None, fmt: str) -> str:
-    f = (lambda v: "-" if v is None else format(v, fmt))  # noqa: E731
+    def f(v: float | None) -> str:
+        return "-" if v is None else format(v, fmt)
+
     return f"{f(a)} -> **{f(b)}**"
 
 

@@ -3,6 +3,8 @@ reader, the graph-to-module conversion, and HMR-BLSM on MoveNet's keypoints."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -492,6 +494,45 @@ def test_packaged_recipe_is_the_full_sets_rows(tmp_path) -> None:
             made = dataclasses.replace(made, train=dataclasses.replace(made.train, init=mod._from_root(out / "runs/kp_frozen/last.pt")))
         assert load_config(root / f"configs/recovery/{config}.yaml") == made, config
         assert f"train configs/recovery/{config}.yaml --out {mod._from_root(out / 'runs' / row)} --resume" in make, config
+
+def test_movenet_table_puts_each_full_row_beside_its_subsets_row(tmp_path) -> None:
+    """experiments/transfer/movenet_table.py: one line a row of the full sets, in movenet_rows.ROWS' order,
+    each cell ``subsets -> full`` ("-" where the subsets lack the row), and --doc replaces only what stands
+    between the markers."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    sys.path.insert(0, str(root / "experiments/transfer"))
+    spec = importlib.util.spec_from_file_location("movenet_table", root / "experiments/transfer/movenet_table.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+
+    def entry(pa, real, syn, ratio):
+        return {"test": {"pa_mpjpe_mm": pa}, "transfer": {
+            "real_pck@0.1": {"ours": real}, "synthetic_pck@0.1": {"ours": syn}, "ratio@0.1": ratio,
+            "ratio_90": [ratio - 0.4, ratio + 0.4], "extent_ratio_real": [1.0, 1.02]}}
+
+    full = {"kp_frozen_long": entry(99.2, 0.638, 0.8, 0.33), "kp_frozen": entry(106.5, 0.619, 0.781, 0.26)}
+    text = mod.table({"kp_frozen": entry(110.5, 0.632, 0.773, 0.35)}, full)
+    lines = text.splitlines()[2:]
+    assert [ln.split("|")[1].strip() for ln in lines] == ["`kp_frozen`", "`kp_frozen_long`"]
+    assert "| 110.5 -> **106.5** | 63.2 -> **61.9** | 77.3 -> **78.1** | 0.35 -> **0.26** | -0.14 to 0.66 |" in lines[0]
+    assert "| - -> **99.2** |" in lines[1] and lines[1].endswith("| 1.00, 1.02 | not run |")
+
+    doc = tmp_path / "doc.md"
+    doc.write_text(f"before\n{mod.MARK[0]}\nold table\n{mod.MARK[1]}\nafter\n")
+    (tmp_path / "s.json").write_text(json.dumps({}))
+    (tmp_path / "f.json").write_text(json.dumps(full))
+    mod.SUBSETS, mod.FULL = tmp_path / "s.json", tmp_path / "f.json"
+    assert mod.main(["--doc", str(doc)]) == 0
+    got = doc.read_text()
+    assert got.startswith(f"before\n{mod.MARK[0]}\n| row |") and got.endswith(f"|\n{mod.MARK[1]}\nafter\n")
+    assert "old table" not in got and got.count("`kp_frozen") == 2
+    (tmp_path / "bare.md").write_text("no markers\n")
+    assert mod.main(["--doc", str(tmp_path / "bare.md")]) == 2
+    assert (tmp_path / "bare.md").read_text() == "no markers\n"
 
 def test_movenet_rows_share_one_budget_and_data() -> None:
     """Every trained row of experiments/transfer/movenet_rows.py has a config that parses, 800 steps of 32 on one
