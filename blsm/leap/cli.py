@@ -31,22 +31,16 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     import numpy as np
-    import torch
 
     import blsm
-    from blsm.config import config_from_dict
-    from blsm.leap.model import Leap
-    from blsm.leap.train import LeapTrainConfig, evaluate
+    from blsm.leap.train import evaluate, load_run
 
     run = Path(args.run)
     ck_path = run / "last.pt"
     if not ck_path.is_file() or not (run / "data.npz").is_file():
         raise ValueError(f"{run}: no LEAP run here (last.pt and data.npz)")
-    ck = torch.load(ck_path, weights_only=False, map_location="cpu")
-    cfg = config_from_dict(LeapTrainConfig, {**ck["config"], "device": "cpu"}, str(ck_path))  # evaluated here, on the CPU
     model = blsm.load()
-    leap = Leap(model, cfg.net)
-    leap.load_state_dict(ck["model"])
+    leap, cfg, ck = load_run(ck_path, model)  # evaluated here, on the CPU
     with np.load(run / "data.npz") as d:
         data = {k: d[k] for k in d.files}
     res = {"step": ck["step"], "cycle": cfg.net.cycle, "held_out_clips": [str(c) for c in data["held_out_clips"]]}

@@ -240,6 +240,18 @@ def _save(path: Path, leap: Leap, opt_lbs: Any, opt_occ: Any, step: int, history
 
 
 @torch.no_grad()
+def load_run(path: str | Path, model: torch.nn.Module) -> tuple[Leap, LeapTrainConfig, dict]:
+    """A run's checkpoint ``path`` (its ``last.pt``) loaded on the CPU, wherever it trained: the network
+    in eval mode, its config (device ``cpu``) and the checkpoint."""
+    from blsm.config import config_from_dict
+
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    cfg = config_from_dict(LeapTrainConfig, {**ck["config"], "device": "cpu"}, str(path))
+    leap = Leap(model, cfg.net)
+    leap.load_state_dict(ck["model"])
+    return leap.eval(), cfg, ck
+
+
 def evaluate(leap: Leap, data: dict[str, np.ndarray], split: str, chunk: int = 8) -> dict[str, float]:
     """Mean IoU (percent) over ``split``'s bodies of the predicted occupancy (probability >= 0.5,
     Eq. 14) against the exact one, and the mean L1 of the inverse and forward weights (Table D.2).

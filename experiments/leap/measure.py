@@ -19,10 +19,9 @@ import torch
 
 import blsm
 from blsm import occupancy
-from blsm.config import config_from_dict
 from blsm.leap.mesh import chamfer, grid_box, reconstruct, true_meshes
 from blsm.leap.model import Leap
-from blsm.leap.train import LeapTrainConfig, evaluate
+from blsm.leap.train import evaluate, load_run
 
 SPLITS = ("unseen_poses", "unseen_subjects")
 ABOUT = {
@@ -34,14 +33,6 @@ ABOUT = {
     "chamfer": "symmetric mean surface distance (mm) between 10,000 points on each surface, LEAP's by marching cubes of the "
                "0.5 level on a grid over the body's grown box",
 }
-
-
-def load_run(run: Path, model: torch.nn.Module) -> tuple[Leap, LeapTrainConfig, dict]:
-    ck = torch.load(run / "last.pt", weights_only=False, map_location="cpu")
-    cfg = config_from_dict(LeapTrainConfig, {**ck["config"], "device": "cpu"}, str(run / "last.pt"))
-    leap = Leap(model, cfg.net)
-    leap.load_state_dict(ck["model"])
-    return leap.eval(), cfg, ck
 
 
 def table(leap: Leap, data: dict, model: torch.nn.Module, n_chamfer: int, res: int) -> dict:
@@ -176,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
                  + f" --chamfer {args.chamfer} --res {args.res}", **ABOUT, "runs": {}}
     histories = {}
     for i, run in enumerate(args.runs):
-        leap, cfg, ck = load_run(run, model)
+        leap, cfg, ck = load_run(run / "last.pt", model)
         with np.load(run / "data.npz") as d:
             data = {k: d[k] for k in d.files}
         name = "cycle" if cfg.net.cycle else "no cycle"
