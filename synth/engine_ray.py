@@ -46,7 +46,7 @@ from synth.progress import Progress, log
 
 _KEY: str = ""
 TICK_S = 0.25
-"""A task reports its progress at most this often (and at its first and last image)."""
+"""A task reports its progress at most this often (and at its start, its first and its last image)."""
 MANIFEST_EVERY_S = 2.0
 """The driver rewrites the manifest at most this often (and at the end): with thousands of shards a
 rewrite per shard would be the driver's main work. A driver killed in between loses at most these
@@ -69,6 +69,7 @@ def _shard_task(cfg_json: dict, out: str, variant: str, threads: int, shard: int
         _KEY = key
     samples: list[tuple[int, dict[str, bytes]]] = []
     left_out: list[dict[str, Any]] = []
+    counter.tick.remote(shard, 0)  # started: a later start of this shard is a retry, even before an image
     last_tick = 0.0
     for i in range(start, stop):
         index, fields, kind, msg = worker.make_in_process(i)
@@ -99,7 +100,7 @@ class _Counter:
         self.restarted: set[int] = set()
 
     def tick(self, shard: int, made: int) -> None:
-        if made == 1 and shard in self.made:  # a task's first report is at its first image
+        if made == 0 and shard in self.made:  # a task's first report is at its start
             self.restarted.add(shard)
         self.made[shard] = made
 

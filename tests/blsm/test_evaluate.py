@@ -28,7 +28,7 @@ def main(argv: list[str]) -> int:
     return blsm_main(["evaluate", *argv])
 
 
-FIT = FitConfig(iterations=(20, 20, 20, 40), lm_iterations=15)
+FIT = FitConfig(iterations=(10, 10, 10, 20), lm_iterations=5)
 
 
 def _write_regs(model, folder, gen, subjects=3, poses=2):

@@ -164,3 +164,16 @@ def test_ray_cluster_of_two_nodes_makes_the_same_bytes(config, reference, tmp_pa
     assert summary["attempts_of_sample_5"] == 2, summary  # once in d, once in e
     ref, e = files(reference), files(tmp_path / "e")
     assert [k for k in ref if k.startswith("shard-") and ref[k] != e[k]] == ["shard-000001.tar"]
+
+
+def test_a_shard_started_again_is_a_retry_even_before_its_first_image():
+    """The Ray engine's counter (a plain class; Ray makes it an actor): a task killed while making
+    its first image has reported its start only; its re-run is still listed as made again."""
+    from synth.engine_ray import _Counter
+
+    c = _Counter()
+    c.tick(0, 0), c.tick(1, 0), c.tick(1, 1), c.tick(1, 4)  # shard 0 lost before an image, 1 done
+    c.tick(0, 0)
+    assert c.retried() == [0] and c.total() == 4
+    c.tick(0, 1), c.tick(2, 0), c.tick(2, 1)
+    assert c.retried() == [0] and c.total() == 6
