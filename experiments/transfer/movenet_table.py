@@ -24,9 +24,12 @@ MARK = ("<!-- movenet-full-table -->", "<!-- /movenet-full-table -->")
 HEAD = (
     "| row | PA-MPJPE test (mm) | real PCK@0.1 (floor 56.7 %) | synthetic PCK@0.1 (floor 58.6 %) | "
     "transfer ratio @0.1 | its 90 % interval, full sets | real size (w, h), full sets | "
-    "8 sub-pixel shifts, full sets: real PCK@0.1 mean (sd) / ratio |\n"
-    "|---|---:|---:|---:|---:|---:|---:|---:|"
+    "8 sub-pixel shifts, full sets: real PCK@0.1 mean (sd) / ratio | "
+    "real PCK@0.1 under its MoveNet's own keypoints (the ceiling), full sets |\n"
+    "|---|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
+CEILING = {"movenet_lightning": "ceiling_lightning", "movenet_thunder": "ceiling_thunder"}
+"""The ceiling row of each MoveNet (movenet_rows.ROWS): its own 2D keypoints, scored on the subsets' JSON."""
 
 
 def _cells(e: dict | None) -> dict[str, float | None]:
@@ -56,6 +59,28 @@ def _order(name: str) -> tuple[int, str]:
     return (list(ROWS).index(base) if base in ROWS else len(ROWS), name)
 
 
+def _backbone(name: str) -> str:
+    """The MoveNet of a row: its config's ``model.backbone`` (a WiSE-FT row: its first row's)."""
+    import yaml
+    from movenet_rows import ROWS
+
+    base = name.split("_fit")[0]
+    src = ROWS[base][1] if base in ROWS else "config"
+    if src.startswith("wise:"):
+        base = src.split(":")[1]
+    cfg = ROOT / "configs/recovery/movenet" / f"{base}.yaml"
+    return yaml.safe_load(cfg.read_text())["model"]["backbone"]
+
+
+def _gap(subsets: dict, name: str, real: float) -> str:
+    """Points of real PCK@0.1 under the row's MoveNet's ceiling row, and that ceiling."""
+    c = subsets.get(CEILING.get(_backbone(name), ""))
+    if c is None:
+        return "no ceiling row"
+    top = 100 * c["transfer"]["real_pck@0.1"]["ours"]
+    return f"{top - real:.1f} (of {top:.1f} %)"
+
+
 def table(subsets: dict, full: dict) -> str:
     lines = [HEAD]
     for name in sorted(full, key=_order):
@@ -70,7 +95,7 @@ def table(subsets: dict, full: dict) -> str:
         lines.append(
             f"| `{name}` | {_pair(s['pa'], f['pa'], '.1f')} | {_pair(s['real'], f['real'], '.1f')} | "
             f"{_pair(s['syn'], f['syn'], '.1f')} | {_pair(s['ratio'], f['ratio'], '.2f')} | "
-            f"{lo:.2f} to {hi:.2f} | {w:.2f}, {h:.2f} | {jit} |"
+            f"{lo:.2f} to {hi:.2f} | {w:.2f}, {h:.2f} | {jit} | {_gap(subsets, name, f['real'])} |"
         )
     return "\n".join(lines)
 

@@ -514,12 +514,16 @@ def test_movenet_table_puts_each_full_row_beside_its_subsets_row(tmp_path) -> No
             "real_pck@0.1": {"ours": real}, "synthetic_pck@0.1": {"ours": syn}, "ratio@0.1": ratio,
             "ratio_90": [ratio - 0.4, ratio + 0.4], "extent_ratio_real": [1.0, 1.02]}}
 
-    full = {"kp_frozen_long": entry(99.2, 0.638, 0.8, 0.33), "kp_frozen": entry(106.5, 0.619, 0.781, 0.26)}
-    text = mod.table({"kp_frozen": entry(110.5, 0.632, 0.773, 0.35)}, full)
-    lines = text.splitlines()[2:]
-    assert [ln.split("|")[1].strip() for ln in lines] == ["`kp_frozen`", "`kp_frozen_long`"]
+    full = {"kp_frozen_long": entry(99.2, 0.638, 0.8, 0.33), "kp_frozen": entry(106.5, 0.619, 0.781, 0.26),
+            "thunder_kp_frozen_fit30": entry(85.0, 0.79, 0.88, 0.8)}
+    subsets = {"kp_frozen": entry(110.5, 0.632, 0.773, 0.35), "ceiling_lightning": entry(None, 0.834, 0.876, 0.92),
+               "ceiling_thunder": entry(None, 0.856, 0.897, 0.9)}
+    lines = mod.table(subsets, full).splitlines()[2:]
+    assert [ln.split("|")[1].strip() for ln in lines] == ["`kp_frozen`", "`kp_frozen_long`", "`thunder_kp_frozen_fit30`"]
     assert "| 110.5 -> **106.5** | 63.2 -> **61.9** | 77.3 -> **78.1** | 0.35 -> **0.26** | -0.14 to 0.66 |" in lines[0]
-    assert "| - -> **99.2** |" in lines[1] and lines[1].endswith("| 1.00, 1.02 | not run |")
+    assert "| - -> **99.2** |" in lines[1] and lines[1].endswith("| 1.00, 1.02 | not run | 19.6 (of 83.4 %) |")
+    assert lines[0].endswith("| 21.5 (of 83.4 %) |") and lines[2].endswith("| 6.6 (of 85.6 %) |")  # each its own MoveNet
+    assert mod.table({}, full).splitlines()[2].endswith("| not run | no ceiling row |")
 
     doc = tmp_path / "doc.md"
     doc.write_text(f"before\n{mod.MARK[0]}\nold table\n{mod.MARK[1]}\nafter\n")
