@@ -171,9 +171,12 @@ def test_a_shard_started_again_is_a_retry_even_before_its_first_image():
     its first image has reported its start only; its re-run is still listed as made again."""
     from synth.engine_ray import _Counter
 
-    c = _Counter()
-    c.tick(0, 0), c.tick(1, 0), c.tick(1, 1), c.tick(1, 4)  # shard 0 lost before an image, 1 done
-    c.tick(0, 0)
+    def ticks(c: _Counter, reports: list[tuple[int, int]]) -> _Counter:
+        for shard, made in reports:
+            c.tick(shard, made)
+        return c
+
+    c = ticks(_Counter(), [(0, 0), (1, 0), (1, 1), (1, 4), (0, 0)])  # shard 0 lost before an image, 1 done
     assert c.retried() == [0] and c.total() == 4
-    c.tick(0, 1), c.tick(2, 0), c.tick(2, 1)
+    ticks(c, [(0, 1), (2, 0), (2, 1)])  # shard 2 starts once: no retry
     assert c.retried() == [0] and c.total() == 6
