@@ -191,7 +191,7 @@ movenet-ablation: movenet-data transfer-setup
 # The same rows at the same budget on the full training sets of recovery-data (3 x 10k images; issue 52),
 # into out/movenet_full and docs/figures/transfer_movenet_full.json: about 6 hours on 2 cores after the
 # data (about 1.5 hours a set); resumable. Its crop caches (out/cache) take about 55 GB of disk: 18 GB
-# for the 192 px crops, about 34 GB for Thunder's 256 px.
+# for the 192 px crops, 33 GB for Thunder's 256 px (measured 2026-12-07).
 movenet-ablation-full: recovery-data movenet-data transfer-setup
 	$(BIN)/python experiments/transfer/movenet_rows.py --data full
 	$(BIN)/python experiments/transfer/movenet_rows.py --data full --rows kp_frozen kp_frozen_long kpimg_frozen thunder_kp_frozen --fit 30

@@ -239,7 +239,6 @@ def _save(path: Path, leap: Leap, opt_lbs: Any, opt_occ: Any, step: int, history
     tmp.replace(path)
 
 
-@torch.no_grad()
 def load_run(path: str | Path, model: torch.nn.Module) -> tuple[Leap, LeapTrainConfig, dict]:
     """A run's checkpoint ``path`` (its ``last.pt``) loaded on the CPU, wherever it trained: the network
     in eval mode, its config (device ``cpu``) and the checkpoint."""
@@ -252,6 +251,7 @@ def load_run(path: str | Path, model: torch.nn.Module) -> tuple[Leap, LeapTrainC
     return leap.eval(), cfg, ck
 
 
+@torch.no_grad()
 def evaluate(leap: Leap, data: dict[str, np.ndarray], split: str, chunk: int = 8) -> dict[str, float]:
     """Mean IoU (percent) over ``split``'s bodies of the predicted occupancy (probability >= 0.5,
     Eq. 14) against the exact one, and the mean L1 of the inverse and forward weights (Table D.2).

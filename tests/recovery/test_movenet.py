@@ -445,20 +445,32 @@ def test_which_blocks_train_does_not_make_another_network() -> None:
     assert a.model_hash() == b.model_hash() != c.model_hash()
 
 
+def _experiment(name: str):
+    """``experiments/transfer/NAME.py`` as a module (the folder on sys.path: the scripts import each other)."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[2] / "experiments/transfer"
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def test_movenet_rows_on_the_full_sets_change_the_training_data_alone(tmp_path) -> None:
     """``movenet_rows.py --data full``: each trained row's config is its own with data.train the
     training sets of ``make recovery-data`` (and the seated postures), and a continuation starts from
     the full runs' network, not the subsets'."""
     import dataclasses
-    import importlib.util
     from pathlib import Path
 
     from recovery.config import load_config
 
     root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("movenet_rows", root / "experiments/transfer/movenet_rows.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _experiment("movenet_rows")
     train, _, _ = mod.DATA["full"]
     assert train[:3] == ["out/data/train_hdri", "out/data/train_sky", "out/data/train_mocap"]
     for name in ("kp_frozen", "thunder_kp_frozen", "kp_frozen_long"):
@@ -477,15 +489,12 @@ def test_packaged_recipe_is_the_full_sets_rows(tmp_path) -> None:
     ``movenet_rows.py --data full`` writes for kp_frozen and kp_frozen_long, trained into the same folders,
     so the packaged network is the measured row (``recovery train --resume`` checks the config)."""
     import dataclasses
-    import importlib.util
     from pathlib import Path
 
     from recovery.config import load_config
 
     root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("movenet_rows", root / "experiments/transfer/movenet_rows.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _experiment("movenet_rows")
     train, out, _ = mod.DATA["full"]
     make = (root / "Makefile").read_text().split("\nrecovery-model:")[1].split("\n\n")[0]
     for config, row in (("hmr_blsm_movenet", "kp_frozen"), ("hmr_blsm_movenet_long", "kp_frozen_long")):
@@ -495,19 +504,13 @@ def test_packaged_recipe_is_the_full_sets_rows(tmp_path) -> None:
         assert load_config(root / f"configs/recovery/{config}.yaml") == made, config
         assert f"train configs/recovery/{config}.yaml --out {mod._from_root(out / 'runs' / row)} --resume" in make, config
 
+
 def test_movenet_table_puts_each_full_row_beside_its_subsets_row(tmp_path) -> None:
     """experiments/transfer/movenet_table.py: one line a row of the full sets, in movenet_rows.ROWS' order,
     each cell ``subsets -> full`` ("-" where the subsets lack the row), and --doc replaces only what stands
     between the markers."""
-    import importlib.util
-    import sys
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[2]
-    sys.path.insert(0, str(root / "experiments/transfer"))
-    spec = importlib.util.spec_from_file_location("movenet_table", root / "experiments/transfer/movenet_table.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _experiment("movenet_table")
 
     def entry(pa, real, syn, ratio):
         return {"test": {"pa_mpjpe_mm": pa}, "transfer": {
@@ -538,19 +541,17 @@ def test_movenet_table_puts_each_full_row_beside_its_subsets_row(tmp_path) -> No
     assert mod.main(["--doc", str(tmp_path / "bare.md")]) == 2
     assert (tmp_path / "bare.md").read_text() == "no markers\n"
 
+
 def test_movenet_rows_share_one_budget_and_data() -> None:
     """Every trained row of experiments/transfer/movenet_rows.py has a config that parses, 800 steps of 32 on one
     data set and one validation set (docs/transfer.md, "A backbone that reads people in photographs");
     the one continuation (kp_frozen_long) starts from kp_frozen's network."""
-    import importlib.util
     from pathlib import Path
 
     from recovery.config import load_config
 
     root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("movenet_rows", root / "experiments/transfer/movenet_rows.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _experiment("movenet_rows")
     trained = [n for n, (_, src) in mod.ROWS.items() if src == "config"]
     assert {"kp_frozen", "kpimg_frozen", "pooled_frozen"} <= set(trained)
     ref = load_config(root / "configs/recovery/movenet/kp_frozen.yaml")
